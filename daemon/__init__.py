@@ -1,0 +1,1 @@
+"""The boat daemon (``seamap run``): drivers, core and publishers wired under asyncio."""

@@ -1,0 +1,1 @@
+"""Device and log drivers: bytes in, typed samples (``mapping.samples``) out, and back."""

@@ -1,0 +1,1 @@
+"""The mapping core: pure, synchronous, deterministic numpy/OpenCV code (no I/O)."""

@@ -1,0 +1,220 @@
+"""Site configuration: one TOML file configures a vehicle and site, for the daemon and replay.
+
+Every key has a typed, documented default (the dataclass fields below). A file may set
+any subset; an unknown table or key, or a value of the wrong type, is a ``SeamapError``
+that names it. The keys of ``docs/CONTRACT.md`` are fixed; more are added here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from seamap.errors import SeamapError
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    vehicle: str = "boat1"
+    """zenoh vehicle id (no '/')."""
+    state_dir: str = "/var/lib/seamap"
+    """Surveys are kept under state_dir/surveys/{survey}/."""
+    survey_autostart: bool = False
+    """true: open a survey as soon as the daemon runs."""
+
+
+@dataclass(frozen=True)
+class SonarConfig:
+    mount_x_m: float = -0.45
+    """Body-frame offset of the sonar from the GPS antenna, forward (m)."""
+    mount_y_m: float = 0.0
+    """Starboard (m)."""
+    mount_z_m: float = 0.3
+    """Down (m)."""
+    mount_yaw_deg: float = 0.0
+    """Sonar boresight relative to the bow, clockwise (degrees)."""
+    tilt_deg: float = 15.0
+    """Downward tilt of the boresight (degrees)."""
+    altitude_m: float = 1.0
+    """Sonar height above the seabed when known, for the ground-range correction (m)."""
+    address: str = "auto"
+    """"auto": take the first sonar heard on the status port; else an IPv4 address."""
+    tcp_port: int = 52100
+    status_port: int = 52102
+
+
+HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")
+IMU_SOURCES = ("auto", "highres", "scaled", "scaled2", "scaled3", "raw")
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    url: str = "udpin:0.0.0.0:14550"
+    """pymavlink connection string, or a serial device such as "/dev/ttyACM0"."""
+    baud: int = 115200
+    heading_source: str = "auto"
+    """Which heading to use: "attitude" (ATTITUDE.yaw), "global_position"
+    (GLOBAL_POSITION_INT.hdg), "vfr_hud" (VFR_HUD.heading, whole degrees), "compass"
+    (tilt-compensated magnetometer plus declination_deg), or "auto": the first of
+    attitude, global_position, vfr_hud, compass that the log or link carries."""
+    imu_source: str = "auto"
+    """Which IMU message: "highres", "scaled", "scaled2", "scaled3", "raw", or "auto":
+    the first of highres, scaled, raw, scaled2, scaled3 present."""
+    declination_deg: float = 0.0
+    """Magnetic declination east of true north (degrees), for heading_source = "compass"."""
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
+    connect: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class SiteConfig:
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    sonar: SonarConfig = field(default_factory=SonarConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+
+
+_CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("mavlink", "heading_source"): HEADING_SOURCES,
+    ("mavlink", "imu_source"): IMU_SOURCES,
+    ("zenoh", "mode"): ("peer", "client", "router"),
+}
+
+
+def _coerce(where: str, value: Any, annotation: Any) -> Any:
+    """Check ``value`` against a field's annotation; ints are accepted for floats."""
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        (item_type,) = typing.get_args(annotation)
+        if not isinstance(value, list):
+            raise SeamapError(f"config: {where} must be a list, got {type(value).__name__}")
+        return [_coerce(f"{where}[{i}]", v, item_type) for i, v in enumerate(value)]
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise SeamapError(f"config: {where} must be true or false, got {value!r}")
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SeamapError(f"config: {where} must be an integer, got {value!r}")
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise SeamapError(f"config: {where} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise SeamapError(f"config: {where} must be finite, got {value!r}")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise SeamapError(f"config: {where} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config annotation {annotation!r}")  # a bug, not input
+
+
+def _section(name: str, cls: type[Any], table: Any) -> Any:
+    if not isinstance(table, dict):
+        raise SeamapError(f"config: [{name}] must be a table")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    values: dict[str, Any] = {}
+    for key, value in table.items():
+        if key not in known:
+            raise SeamapError(
+                f"config: unknown key '{key}' in [{name}] (known: {', '.join(sorted(known))})"
+            )
+        values[key] = _coerce(f"[{name}] {key}", value, hints[key])
+        allowed = _CHOICES.get((name, key))
+        if allowed is not None and values[key] not in allowed:
+            raise SeamapError(
+                f"config: [{name}] {key} = {value!r} is not one of {', '.join(allowed)}"
+            )
+    return cls(**values)
+
+
+def config_from_dict(data: dict[str, Any]) -> SiteConfig:
+    """Build a SiteConfig from parsed TOML; unknown tables or keys raise SeamapError."""
+    hints = typing.get_type_hints(SiteConfig)
+    sections: dict[str, Any] = {}
+    for name, table in data.items():
+        if name not in hints:
+            known = ", ".join(f"[{n}]" for n in hints)
+            raise SeamapError(f"config: unknown table [{name}] (known: {known})")
+        sections[name] = _section(name, hints[name], table)
+    config = SiteConfig(**sections)
+    if "/" in config.daemon.vehicle or not config.daemon.vehicle:
+        raise SeamapError(f"config: [daemon] vehicle {config.daemon.vehicle!r} must be a non-empty id without '/'")
+    return config
+
+
+def load_config(path: str | Path | None) -> SiteConfig:
+    """Load a site TOML file; None gives the defaults."""
+    if path is None:
+        return SiteConfig()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SeamapError(f"{path}: no such config file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SeamapError(f"{path}: cannot read config ({exc})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SeamapError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        return config_from_dict(data)
+    except SeamapError as exc:
+        raise SeamapError(f"{path}: {exc}") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def dump_config(config: SiteConfig) -> str:
+    """The config as TOML text that ``load_config`` reads back to an equal SiteConfig."""
+    lines: list[str] = []
+    for section in dataclasses.fields(config):
+        lines.append(f"[{section.name}]")
+        table = getattr(config, section.name)
+        for item in dataclasses.fields(table):
+            lines.append(f"{item.name} = {_toml_value(getattr(table, item.name))}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def replace_section(config: SiteConfig, **sections: Any) -> SiteConfig:
+    """A copy of ``config`` with whole sections replaced (a small convenience for tools)."""
+    return dataclasses.replace(config, **sections)
+
+
+__all__ = [
+    "HEADING_SOURCES",
+    "IMU_SOURCES",
+    "DaemonConfig",
+    "MavlinkConfig",
+    "SiteConfig",
+    "SonarConfig",
+    "ZenohConfig",
+    "config_from_dict",
+    "dump_config",
+    "load_config",
+    "replace_section",
+]

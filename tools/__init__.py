@@ -1,0 +1,1 @@
+"""Tools around the core: the survey simulator and friends."""
