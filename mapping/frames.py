@@ -1,0 +1,199 @@
+"""Per-frame local registration, shared by the batch pipeline and the streaming engine.
+
+Each ping is preprocessed into a Cartesian frame, registered by FMT against the last
+accepted frame, and the result is validated against the EKF's relative motion with the
+paper's thresholds tau_p, tau_a (Zhang et al., Eq. 4-5; Algorithm 1 lines 3-10). Frames
+are sonar frames; the edges handed to the optimiser are vehicle-frame relative poses,
+through the sonar's lever arm and mount yaw (``SonarMount``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration, RelativePose
+from mapping.polar import FanGeometry
+from mapping.posegraph import Edge
+from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame
+from mapping.samples import Ping
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class SonarMount:
+    """Where the sonar sits on the vehicle (body frame, relative to the GPS antenna).
+
+    forward_m / starboard_m / down_m: lever arm (m); yaw_rad: boresight relative to the bow,
+    clockwise; tilt_rad: boresight below horizontal; altitude_m: sonar height above the
+    seabed (0 when unknown).
+    """
+
+    forward_m: float = -0.45
+    starboard_m: float = 0.0
+    down_m: float = 0.3
+    yaw_rad: float = 0.0
+    tilt_rad: float = math.radians(15.0)
+    altitude_m: float = 1.0
+
+    def matrix(self) -> Array:
+        """Sonar level frame in the vehicle frame (3x3, (forward, starboard) metres)."""
+        return RelativePose(self.forward_m, self.starboard_m, self.yaw_rad).matrix()
+
+    def sonar_pose(self, vehicle: Array) -> Array:
+        """Sonar (x, y, yaw) in the local frame from vehicle (x, y, heading): (..., 3)."""
+        vehicle = np.asarray(vehicle, float)
+        psi = vehicle[..., 2]
+        s, c = np.sin(psi), np.cos(psi)
+        x = vehicle[..., 0] + self.forward_m * s + self.starboard_m * c
+        y = vehicle[..., 1] + self.forward_m * c - self.starboard_m * s
+        return np.stack([x, y, (psi + self.yaw_rad) % (2 * math.pi)], axis=-1)
+
+    def vehicle_relative(self, sonar: RelativePose) -> RelativePose:
+        """Vehicle-frame relative pose from a sonar-frame one: M S M^-1."""
+        m = self.matrix()
+        return RelativePose.from_matrix(m @ sonar.matrix() @ np.linalg.inv(m))
+
+    def sonar_relative(self, vehicle: RelativePose) -> RelativePose:
+        """Sonar-frame relative pose from a vehicle-frame one: M^-1 V M."""
+        m = self.matrix()
+        return RelativePose.from_matrix(np.linalg.inv(m) @ vehicle.matrix() @ m)
+
+
+def relative_pose(a: Array, b: Array) -> RelativePose:
+    """Pose b in the frame of pose a; poses (x east, y north, heading clockwise from north)."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    s, c = math.sin(a[2]), math.cos(a[2])
+    yaw = (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi
+    return RelativePose(s * dx + c * dy, c * dx - s * dy, yaw)
+
+
+def compose(a: Array, rel: RelativePose) -> Array:
+    """The pose at ``rel`` from pose ``a`` (inverse of ``relative_pose``)."""
+    s, c = math.sin(a[2]), math.cos(a[2])
+    x = a[0] + rel.forward_m * s + rel.starboard_m * c
+    y = a[1] + rel.forward_m * c - rel.starboard_m * s
+    return np.array([x, y, (a[2] + rel.yaw_rad) % (2 * math.pi)])
+
+
+@dataclass(frozen=True, slots=True)
+class RegistrationParams:
+    tau_p_m: float = 0.15
+    """Largest disagreement between FMT and EKF relative translation (metres)."""
+    tau_a_deg: float = 3.0
+    """Largest disagreement in relative yaw (degrees)."""
+    min_score: float = 0.05
+    """Smallest NCC of the aligned overlap for a registration to count."""
+    min_overlap: float = 0.3
+    max_gap_s: float = 1.5
+    """Register against the last accepted frame only while it is this recent; after a
+    longer run of rejections the chain restarts (the next frame is kept on its prior)."""
+    guided_search: bool = True
+    """Search the translation peak only within tau_p of the EKF's prediction."""
+
+
+@dataclass
+class FrameOutcome:
+    """What happened to one frame. ``edge`` links it to the previous accepted frame
+    (vehicle frame); ``reason`` says why it was rejected, "" when accepted."""
+
+    index: int
+    time: float
+    accepted: bool
+    reason: str = ""
+    edge: Edge | None = None
+    registration: Registration | None = None
+    delta_p_m: float = math.nan
+    delta_a_deg: float = math.nan
+
+
+@dataclass
+class LocalRegistration:
+    """Streaming local registration: feed frames in order with their EKF priors."""
+
+    mount: SonarMount
+    preprocess: PreprocessParams = field(default_factory=PreprocessParams)
+    fmt: FmtParams = field(default_factory=FmtParams)
+    params: RegistrationParams = field(default_factory=RegistrationParams)
+
+    def __post_init__(self) -> None:
+        self.preprocessor: Preprocessor | None = None
+        self.registrar: FmtRegistrar | None = None
+        self._fan: FanGeometry | None = None
+        self._last: tuple[int, float, Array, PreparedFrame] | None = None
+
+    def frame(self, ping: Ping) -> SonarFrame:
+        """Preprocess one ping; tables are rebuilt only when the sonar's geometry changes."""
+        fan = FanGeometry.of(
+            ping.bearings_rad,
+            ping.n_ranges,
+            ping.range_resolution_m,
+            self.mount.altitude_m,
+            self.mount.tilt_rad,
+        )
+        if self.preprocessor is None or fan != self._fan:
+            reference = self.preprocessor.reference_cdf if self.preprocessor else None
+            self.preprocessor = Preprocessor(
+                fan, math.degrees(self.mount.tilt_rad), self.preprocess, reference_cdf=reference
+            )
+            grid = self.preprocessor.grid
+            assert grid is not None
+            self.registrar = FmtRegistrar(grid, self.preprocessor.tables.mask, self.fmt)
+            self._fan = fan
+            self._last = None  # a new geometry cannot be registered against the old
+        return self.preprocessor(ping.image)
+
+    def register(
+        self, index: int, time: float, frame: SonarFrame, prior: Array | None
+    ) -> FrameOutcome:
+        """Register a preprocessed frame against the last accepted one and validate.
+
+        prior: the EKF vehicle pose (x, y, heading) at the frame time, or None when the
+        filter has not started (the frame is then rejected: it cannot be placed).
+        """
+        if prior is None or not np.all(np.isfinite(prior)):
+            return FrameOutcome(index, time, False, "no navigation prior")
+        assert self.registrar is not None
+        prepared = self.registrar.prepare(frame.image)
+        last = self._last
+        if last is None or time - last[1] > self.params.max_gap_s:
+            # The first frame, or a chain restart: kept on its prior alone.
+            self._last = (index, time, prior, prepared)
+            return FrameOutcome(index, time, True, "")
+        last_index, _, last_prior, last_prepared = last
+        expected_vehicle = relative_pose(last_prior, prior)
+        expected_sonar = self.mount.sonar_relative(expected_vehicle)
+        search = self.params.tau_p_m if self.params.guided_search else None
+        reg = self.registrar.register(last_prepared, prepared, expected_sonar, search)
+        measured = self.mount.vehicle_relative(reg.relative)
+        delta_p = math.hypot(
+            measured.forward_m - expected_vehicle.forward_m,
+            measured.starboard_m - expected_vehicle.starboard_m,
+        )
+        delta_a = abs(
+            math.degrees(
+                (measured.yaw_rad - expected_vehicle.yaw_rad + math.pi) % (2 * math.pi) - math.pi
+            )
+        )
+        outcome = FrameOutcome(
+            index, time, False, registration=reg, delta_p_m=delta_p, delta_a_deg=delta_a
+        )
+        if delta_p > self.params.tau_p_m:
+            outcome.reason = "translation disagrees with EKF (tau_p)"
+        elif delta_a > self.params.tau_a_deg:
+            outcome.reason = "rotation disagrees with EKF (tau_a)"
+        elif reg.score < self.params.min_score:
+            outcome.reason = "low similarity score"
+        elif reg.overlap < self.params.min_overlap:
+            outcome.reason = "too little overlap"
+        else:
+            outcome.accepted = True
+            outcome.edge = Edge(
+                last_index, index, measured.forward_m, measured.starboard_m, measured.yaw_rad
+            )
+            self._last = (index, time, prior, prepared)
+        return outcome

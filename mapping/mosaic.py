@@ -1,0 +1,192 @@
+"""The mosaic on the contract's fixed UTM tile grid, and warping frames onto it.
+
+Tile (col, row) covers easting [col*T, (col+1)*T) and northing [row*T, (row+1)*T),
+T = tile_px * res_m, in the survey's UTM CRS. A tile image is north-up: its row 0 is the
+northernmost line of pixels, column 0 the westernmost. Pixel (u, v) of the global grid
+has its centre at easting (u + 0.5) * res_m, northing (v + 0.5) * res_m.
+
+Frames are warped with one affine per tile (a rigid motion of the sonar's Cartesian
+frame), intensity, score and fan mask together, so a tile gets exactly the pixels the
+fan covers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from mapping.blend import BlendParams, TopNStack
+from mapping.fmt import SonarGrid
+
+FloatImage = npt.NDArray[np.float32]
+TileKey = tuple[int, int]
+
+
+@dataclass(frozen=True, slots=True)
+class SonarPose:
+    """Pose of the sonar's level frame in UTM: easting, northing (m), yaw of the boresight
+    (radians clockwise from grid north)."""
+
+    east: float
+    north: float
+    yaw: float
+
+
+@dataclass(frozen=True, slots=True)
+class TileGrid:
+    res_m: float = 0.02
+    tile_px: int = 256
+
+    @property
+    def tile_m(self) -> float:
+        return self.res_m * self.tile_px
+
+    def tiles_covering(self, west: float, south: float, east: float, north: float) -> list[TileKey]:
+        t = self.tile_m
+        cols = range(math.floor(west / t), math.floor(east / t) + 1)
+        rows = range(math.floor(south / t), math.floor(north / t) + 1)
+        return [(c, r) for c in cols for r in rows]
+
+    def tile_west_north(self, key: TileKey) -> tuple[float, float]:
+        """UTM easting of the tile's west edge and northing of its north edge (m)."""
+        col, row = key
+        return col * self.tile_m, (row + 1) * self.tile_m
+
+    def tile_pixel_to_utm(self, key: TileKey) -> npt.NDArray[np.float64]:
+        """3x3 matrix taking tile pixel (x, y) (x east, y down from the north edge) to
+        UTM (easting, northing) of its centre."""
+        west, north = self.tile_west_north(key)
+        r = self.res_m
+        return np.array([[r, 0.0, west + 0.5 * r], [0.0, -r, north - 0.5 * r], [0.0, 0.0, 1.0]])
+
+
+def sonar_to_utm(pose: SonarPose) -> npt.NDArray[np.float64]:
+    """3x3 matrix taking sonar level-frame (forward, starboard) metres to UTM (E, N)."""
+    s, c = math.sin(pose.yaw), math.cos(pose.yaw)
+    # forward -> (sin yaw, cos yaw); starboard -> (cos yaw, -sin yaw)
+    return np.array([[s, c, pose.east], [c, -s, pose.north], [0.0, 0.0, 1.0]])
+
+
+def footprint_bounds(
+    grid: SonarGrid, mask: npt.NDArray[np.bool_], pose: SonarPose
+) -> tuple[float, float, float, float]:
+    """(west, south, east, north) UTM bounds of the fan's bounding box for a sonar pose."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return (pose.east, pose.north, pose.east, pose.north)
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    corners = np.array([[c0, c1, c0, c1], [r0, r0, r1, r1], [1, 1, 1, 1]], float) - [
+        [0.5],
+        [0.5],
+        [0.0],
+    ]
+    world = sonar_to_utm(pose) @ grid.pixel_to_metric() @ corners
+    margin = grid.res_m * 2
+    return (
+        float(world[0].min()) - margin,
+        float(world[1].min()) - margin,
+        float(world[0].max()) + margin,
+        float(world[1].max()) + margin,
+    )
+
+
+def warp_to_tile(
+    layers: FloatImage,
+    grid: SonarGrid,
+    pose: SonarPose,
+    tiles: TileGrid,
+    key: TileKey,
+) -> FloatImage:
+    """Warp a (rows, cols, channels) frame stack into tile ``key`` (tile_px^2, channels)."""
+    # tile pixel -> UTM -> sonar metric -> sonar pixel, as one affine for cv2.
+    to_sonar_pixel = (
+        np.linalg.inv(grid.pixel_to_metric())
+        @ np.linalg.inv(sonar_to_utm(pose))
+        @ tiles.tile_pixel_to_utm(key)
+    )
+    size = tiles.tile_px
+    warped = cv2.warpAffine(
+        layers,
+        to_sonar_pixel[:2],
+        (size, size),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0.0,
+    )
+    return warped.reshape(size, size, -1)
+
+
+class TileMosaic:
+    """Blending accumulators on the tile grid, created on demand as frames touch tiles."""
+
+    def __init__(self, tiles: TileGrid, params: BlendParams | None = None) -> None:
+        self.tiles = tiles
+        self.params = params or BlendParams()
+        self.stacks: dict[TileKey, TopNStack] = {}
+
+    def add_frame(
+        self,
+        image: FloatImage,
+        score: FloatImage,
+        mask: npt.NDArray[np.bool_],
+        grid: SonarGrid,
+        pose: SonarPose,
+    ) -> list[TileKey]:
+        """Blend one frame in; returns the tiles it touched."""
+        layers = np.dstack([image, score, mask.astype(np.float32)])
+        touched = []
+        for key in self.tiles.tiles_covering(*footprint_bounds(grid, mask, pose)):
+            warped = warp_to_tile(layers, grid, pose, self.tiles, key)
+            # Only pixels wholly inside the fan: interpolation across the fan edge would
+            # mix in the zeros outside it.
+            valid = warped[..., 2] >= 0.999
+            if not valid.any():
+                continue
+            stack = self.stacks.get(key)
+            if stack is None:
+                stack = self.stacks[key] = TopNStack((self.tiles.tile_px,) * 2, self.params.top_n)
+            stack.add(warped[..., 0], warped[..., 1], valid)
+            touched.append(key)
+        return touched
+
+    def render_tile(self, key: TileKey) -> tuple[FloatImage, npt.NDArray[np.bool_]]:
+        return self.stacks[key].render(self.params)
+
+    def render_all(self) -> Iterator[tuple[TileKey, FloatImage, npt.NDArray[np.bool_]]]:
+        for key in sorted(self.stacks):
+            image, covered = self.render_tile(key)
+            yield key, image, covered
+
+
+def assemble(
+    tiles: TileGrid, rendered: dict[TileKey, tuple[FloatImage, npt.NDArray[np.bool_]]]
+) -> tuple[npt.NDArray[np.uint8], tuple[float, float]]:
+    """One north-up uint8 image of all tiles (0 = no data, data 1..255) and the UTM
+    (west, north) of its top-left corner."""
+    if not rendered:
+        return np.zeros((0, 0), np.uint8), (0.0, 0.0)
+    cols = [k[0] for k in rendered]
+    rows = [k[1] for k in rendered]
+    c0, c1, r0, r1 = min(cols), max(cols), min(rows), max(rows)
+    size = tiles.tile_px
+    canvas = np.zeros(((r1 - r0 + 1) * size, (c1 - c0 + 1) * size), np.uint8)
+    for (col, row), (image, covered) in rendered.items():
+        y = (r1 - row) * size
+        x = (col - c0) * size
+        canvas[y : y + size, x : x + size] = to_uint8_with_nodata(image, covered)
+    return canvas, (c0 * tiles.tile_m, (r1 + 1) * tiles.tile_m)
+
+
+def to_uint8_with_nodata(
+    image: FloatImage, covered: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.uint8]:
+    """[0, 1] intensities to 1..255, 0 where there is no data (the contract's no-data)."""
+    values = np.clip(np.rint(image * 254.0) + 1.0, 1, 255).astype(np.uint8)
+    values[~covered] = 0
+    return values

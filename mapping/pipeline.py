@@ -1,0 +1,334 @@
+"""The paper's pipeline over a whole survey (Zhang et al., Algorithm 1), in four modes.
+
+- ``fmt-only``: the baseline, frames placed by chaining the accepted registrations;
+- ``gps-only``: frames placed on the EKF-smoothed global priors alone;
+- ``single-stage``: registrations and priors fused by the least-squares optimisation;
+- ``two-stage``: 50%-overlapping subsets mapped as the baseline (stage 1), then the
+  subsets, as rigid submaps, placed by the same optimisation against the priors, with the
+  registrations between overlapping subsets (stage 2).
+
+The core does no I/O: pings come from a callable that yields them afresh for each pass
+(the first pass reads times, the second registers, the last blends), so memory stays
+bounded by the mosaic, not the survey.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.blend import BlendParams, FeatureScorer
+from mapping.ekf import EkfParams
+from mapping.fmt import FmtParams, RelativePose
+from mapping.frames import (
+    FrameOutcome,
+    LocalRegistration,
+    RegistrationParams,
+    SonarMount,
+    compose,
+    relative_pose,
+)
+from mapping.geo import LocalFrame
+from mapping.mosaic import SonarPose, TileGrid, TileMosaic
+from mapping.navigation import estimate_at, prepare_inputs
+from mapping.posegraph import Edge, OptimiserParams, optimise
+from mapping.preprocess import PreprocessParams
+from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+
+Array = npt.NDArray[np.float64]
+
+
+class Mode(StrEnum):
+    SINGLE_STAGE = "single-stage"
+    TWO_STAGE = "two-stage"
+    FMT_ONLY = "fmt-only"
+    GPS_ONLY = "gps-only"
+
+
+@dataclass(frozen=True)
+class NavSamples:
+    imu: Sequence[ImuSample]
+    gnss: Sequence[GnssFix]
+    heading: Sequence[HeadingSample]
+    attitude: Sequence[AttitudeSample] = ()
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    preprocess: PreprocessParams = field(default_factory=PreprocessParams)
+    fmt: FmtParams = field(default_factory=FmtParams)
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    optimiser: OptimiserParams = field(default_factory=OptimiserParams)
+    blend: BlendParams = field(default_factory=BlendParams)
+    ekf: EkfParams = field(default_factory=EkfParams)
+    mosaic_res_m: float = 0.02
+    tile_px: int = 256
+    smooth_nav: bool = True
+    subset_frames: int = 60
+    """two-stage: frames per subset (consecutive subsets overlap by half)."""
+
+
+@dataclass
+class SurveyResult:
+    """Everything a replay reports: poses of the mapped frames, why others were not
+    mapped, the mosaic tiles, timings per stage (seconds)."""
+
+    frame: LocalFrame
+    mode: Mode
+    times: Array
+    priors: Array  # (n, 3) EKF poses, NaN before the filter started
+    poses: Array  # (n, 3) final vehicle poses (NaN where not mapped)
+    mapped: npt.NDArray[np.bool_]
+    outcomes: list[FrameOutcome]
+    rejected: Counter[str]
+    timings: dict[str, float]
+    mosaic: TileMosaic
+    edges: list[Edge]
+    mount: SonarMount
+
+    @property
+    def frames_read(self) -> int:
+        return int(self.times.size)
+
+    @property
+    def frames_mapped(self) -> int:
+        return int(self.mapped.sum())
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.totals: dict[str, float] = {}
+
+    def add(self, stage: str, started: float) -> float:
+        now = time.perf_counter()
+        self.totals[stage] = self.totals.get(stage, 0.0) + now - started
+        return now
+
+
+def _chain(n: int, accepted: npt.NDArray[np.bool_], edges: Sequence[Edge], priors: Array) -> Array:
+    """Poses from chaining registrations; a chain restart (an accepted frame with no
+    edge) bridges the gap with the EKF's relative motion."""
+    poses = np.full((n, 3), np.nan)
+    incoming = {e.j: e for e in edges}
+    last: int | None = None
+    for k in np.flatnonzero(accepted):
+        edge = incoming.get(int(k))
+        if last is None:
+            poses[k] = priors[k]
+        elif edge is not None:
+            poses[k] = compose(
+                poses[edge.i], RelativePose(edge.forward_m, edge.starboard_m, edge.yaw_rad)
+            )
+        else:
+            poses[k] = compose(poses[last], relative_pose(priors[last], priors[k]))
+        last = int(k)
+    return poses
+
+
+def _optimise_frames(
+    accepted: npt.NDArray[np.bool_], edges: Sequence[Edge], priors: Array, params: OptimiserParams
+) -> Array:
+    index = np.flatnonzero(accepted)
+    position = {int(k): i for i, k in enumerate(index)}
+    local = [
+        Edge(position[e.i], position[e.j], e.forward_m, e.starboard_m, e.yaw_rad, e.weight)
+        for e in edges
+    ]
+    solution = optimise(priors[index], priors[index], local, params)
+    poses = np.full_like(priors, np.nan)
+    poses[index] = solution.poses
+    return poses
+
+
+def _two_stage(
+    accepted: npt.NDArray[np.bool_],
+    edges: Sequence[Edge],
+    priors: Array,
+    params: PipelineParams,
+) -> Array:
+    """Stage 1: subsets of ``subset_frames`` accepted frames, consecutive subsets sharing
+    half their frames, each chained from its first frame (the baseline) into a rigid
+    submap. Stage 2: the submap poses optimised with the paper's objective: a global prior
+    per submap (the rigid fit of its frames to their EKF priors, weighted by their number)
+    and a local edge between consecutive submaps from the frames they share."""
+    index = np.flatnonzero(accepted)
+    if index.size == 0:
+        return np.full_like(priors, np.nan)
+    size = max(params.subset_frames, 4)
+    stride = size // 2
+    subsets = [index[s : s + size] for s in range(0, max(index.size - stride, 1), stride)]
+    chained = _chain(len(priors), accepted, edges, priors)
+    offsets = [
+        np.array([_relative_array(chained[sub[0]], chained[k]) for k in sub]) for sub in subsets
+    ]
+    submap_priors = np.array(
+        [_fit_rigid(offs, priors[sub]) for sub, offs in zip(subsets, offsets, strict=True)]
+    )
+    submap_edges: list[Edge] = []
+    for s in range(len(subsets) - 1):
+        shared = np.intersect1d(subsets[s], subsets[s + 1])
+        if shared.size == 0:
+            continue
+        k = int(shared[shared.size // 2])
+        in_a = offsets[s][int(np.flatnonzero(subsets[s] == k)[0])]
+        in_b = offsets[s + 1][int(np.flatnonzero(subsets[s + 1] == k)[0])]
+        # Submap s+1 in submap s: frame k in s, then back from k to the anchor of s+1.
+        between = _compose_array(in_a, _inverse_array(in_b))
+        submap_edges.append(
+            Edge(
+                s,
+                s + 1,
+                float(between[0]),
+                float(between[1]),
+                float(between[2]),
+                float(shared.size),
+            )
+        )
+    weights = np.array([[sub.size, sub.size] for sub in subsets], float)
+    solution = optimise(submap_priors, submap_priors, submap_edges, params.optimiser, weights)
+    poses = np.full_like(priors, np.nan)
+    for s in range(len(subsets) - 1, -1, -1):
+        # Earlier submaps win where subsets overlap (written last).
+        for k, off in zip(subsets[s], offsets[s], strict=True):
+            poses[k] = _compose_array(solution.poses[s], off)
+    return poses
+
+
+def _relative_array(a: Array, b: Array) -> Array:
+    r = relative_pose(a, b)
+    return np.array([r.forward_m, r.starboard_m, r.yaw_rad])
+
+
+def _compose_array(a: Array, rel: Array) -> Array:
+    return compose(a, RelativePose(float(rel[0]), float(rel[1]), float(rel[2])))
+
+
+def _inverse_array(rel: Array) -> Array:
+    inverse = RelativePose.from_matrix(
+        np.linalg.inv(RelativePose(float(rel[0]), float(rel[1]), float(rel[2])).matrix())
+    )
+    return np.array([inverse.forward_m, inverse.starboard_m, inverse.yaw_rad])
+
+
+def _fit_rigid(offsets: Array, targets: Array) -> Array:
+    """Submap pose (its first frame's) whose frames at ``offsets`` best fit ``targets``
+    (least squares on positions: 2-D Procrustes; Umeyama 1991, doi:10.1109/34.88573)."""
+    src = np.array([_compose_array(np.zeros(3), o)[:2] for o in offsets])
+    dst = targets[:, :2]
+    src_c, dst_c = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - src_c, dst - dst_c
+    # Counter-clockwise rotation (east-north axes) taking a onto b.
+    theta = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
+    c, s = math.cos(theta), math.sin(theta)
+    anchor_xy = np.array([[c, -s], [s, c]]) @ (-src_c) + dst_c
+    # A counter-clockwise turn of the east-north axes lowers a clockwise heading.
+    return np.array([anchor_xy[0], anchor_xy[1], (-theta) % (2 * math.pi)])
+
+
+def map_survey(
+    pings: Callable[[], Iterable[Ping]],
+    nav: NavSamples,
+    mount: SonarMount,
+    params: PipelineParams | None = None,
+    mode: Mode = Mode.SINGLE_STAGE,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> SurveyResult:
+    """Map a survey: ``pings()`` yields the pings in time order, afresh on each call."""
+    params = params or PipelineParams()
+    clock = _Clock()
+    started = time.perf_counter()
+
+    usable = [f for f in nav.gnss if f.usable]
+    if not usable:
+        raise ValueError("the navigation log has no usable GNSS fix: frames cannot be placed")
+    frame = LocalFrame.around(usable[0].lat_deg, usable[0].lon_deg)
+    inputs = prepare_inputs(frame, nav.imu, nav.gnss, nav.heading, nav.attitude, params.ekf)
+    times = np.array([p.time for p in pings()], float)
+    started = clock.add("read", started)
+    n = times.size
+    estimate = estimate_at(inputs, times, params.ekf, smooth=params.smooth_nav)
+    priors = estimate.poses
+    started = clock.add("ekf", started)
+
+    registration = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+    outcomes: list[FrameOutcome] = []
+    for index, ping in enumerate(pings()):
+        if index >= n:
+            break
+        t0 = time.perf_counter()
+        sonar_frame = registration.frame(ping)
+        t1 = clock.add("preprocess", t0)
+        prior = priors[index] if estimate.valid[index] else None
+        if mode is Mode.GPS_ONLY:
+            outcomes.append(
+                FrameOutcome(
+                    index,
+                    ping.time,
+                    prior is not None,
+                    "" if prior is not None else "no navigation prior",
+                )
+            )
+        else:
+            outcomes.append(registration.register(index, ping.time, sonar_frame, prior))
+        clock.add("registration", t1)
+        if progress is not None:
+            progress("registering", index + 1, n)
+    accepted = np.array([o.accepted for o in outcomes], bool)
+    edges = [o.edge for o in outcomes if o.edge is not None]
+    rejected = Counter(o.reason for o in outcomes if not o.accepted)
+
+    t0 = time.perf_counter()
+    if mode is Mode.GPS_ONLY:
+        poses = np.where(accepted[:, None], priors, np.nan)
+    elif mode is Mode.FMT_ONLY:
+        poses = _chain(n, accepted, edges, priors)
+    elif mode is Mode.SINGLE_STAGE:
+        poses = _optimise_frames(accepted, edges, priors, params.optimiser)
+    else:
+        poses = _two_stage(accepted, edges, priors, params)
+    clock.add("optimisation", t0)
+    mapped = accepted & np.all(np.isfinite(poses), axis=1)
+
+    mosaic = TileMosaic(TileGrid(params.mosaic_res_m, params.tile_px), params.blend)
+    scorer = FeatureScorer(params.blend)
+    blender = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+    sonar_poses = mount.sonar_pose(poses)
+    for index, ping in enumerate(pings()):
+        if index >= n:
+            break
+        if not mapped[index]:
+            continue
+        t0 = time.perf_counter()
+        sonar_frame = blender.frame(ping)
+        t1 = clock.add("preprocess", t0)
+        assert blender.preprocessor is not None and blender.preprocessor.grid is not None
+        score = scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
+        east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
+        pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
+        mosaic.add_frame(
+            sonar_frame.image, score, sonar_frame.mask, blender.preprocessor.grid, pose
+        )
+        clock.add("blending", t1)
+        if progress is not None:
+            progress("blending", index + 1, n)
+    return SurveyResult(
+        frame=frame,
+        mode=mode,
+        times=times,
+        priors=priors,
+        poses=np.where(mapped[:, None], poses, np.nan),
+        mapped=mapped,
+        outcomes=outcomes,
+        rejected=rejected,
+        timings=clock.totals,
+        mosaic=mosaic,
+        edges=edges,
+        mount=mount,
+    )

@@ -1,0 +1,89 @@
+"""``seamap replay``: map recorded sonar and MAVLink logs into the contract's result folder."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from seamap.errors import SeamapError
+
+MODES = ("single-stage", "two-stage", "fmt-only", "gps-only")
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "replay",
+        help="map recorded logs: mosaic.tif, mosaic.png, trajectory.csv, report.json",
+        description=(
+            "Run the mapping pipeline over a recorded Oculus sonar log and a MAVLink log "
+            "and write the result folder."
+        ),
+    )
+    parser.add_argument("--sonar", type=Path, required=True, help="Oculus log (.oculus)")
+    parser.add_argument("--nav", type=Path, required=True, help="MAVLink log (.tlog or .bin)")
+    parser.add_argument("--config", type=Path, default=None, help="site TOML (default: defaults)")
+    parser.add_argument("--mode", choices=MODES, default="single-stage")
+    parser.add_argument("--out", type=Path, required=True, help="result folder")
+    parser.add_argument(
+        "--truth", type=Path, default=None, help="a simulator's truth.json: add accuracy to the report"
+    )
+    parser.set_defaults(handler=run)
+
+
+class Progress:
+    """One self-rewriting line on a terminal; silent when stderr is not a terminal."""
+
+    def __init__(self) -> None:
+        self.enabled = sys.stderr.isatty()
+        self.last = 0.0
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if done < total and now - self.last < 0.2:
+            return
+        self.last = now
+        sys.stderr.write(f"\r{stage}: {done}/{total} frames ")
+        sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\r" + " " * 60 + "\r")
+            sys.stderr.flush()
+
+
+def run(args: argparse.Namespace) -> int:
+    from seamap.replay import replay
+
+    for label, path in (("sonar log", args.sonar), ("navigation log", args.nav)):
+        if not path.exists():
+            raise SeamapError(f"{path}: no such {label}")
+        if path.is_dir():
+            raise SeamapError(f"{path}: is a directory, not a {label}")
+    progress = Progress()
+    try:
+        report = replay(
+            args.sonar, args.nav, args.config, args.mode, args.out, truth=args.truth, progress=progress
+        )
+    finally:
+        progress.done()
+    frames = report["frames"]
+    print(
+        f"{args.out}: {frames['mapped']} of {frames['read']} frames mapped "
+        f"({args.mode}, {report['timings_s']['total']:.1f} s)"
+    )
+    for reason, count in sorted(frames["rejected"].items()):
+        print(f"  rejected {count}: {reason}")
+    if "accuracy" in report:
+        accuracy = report["accuracy"]
+        ate = accuracy["trajectory"]["rmse"]
+        spacing = accuracy.get("quadrat_spacing", {})
+        line = f"  accuracy: ATE {ate:.3f} m"
+        if spacing.get("rmse") is not None:
+            line += f", quadrat spacing RMSE {spacing['rmse']:.3f} m"
+        print(line)
+    return 0

@@ -1,0 +1,142 @@
+"""Replay: recorded logs through the mapping core into the result folder.
+
+The glue between the drivers (log readers), the core (``mapping.pipeline``) and the result
+writers; the same core the daemon runs live.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.frames import SonarMount
+from mapping.mosaic import assemble
+from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
+from mapping.samples import Ping
+from seamap.config import SiteConfig, SonarConfig, load_config
+from seamap.errors import SeamapError
+from seamap.results import write_geotiff, write_png, write_report, write_trajectory
+
+
+def mount_from_config(sonar: SonarConfig) -> SonarMount:
+    return SonarMount(
+        forward_m=sonar.mount_x_m,
+        starboard_m=sonar.mount_y_m,
+        down_m=sonar.mount_z_m,
+        yaw_rad=math.radians(sonar.mount_yaw_deg),
+        tilt_rad=math.radians(sonar.tilt_deg),
+        altitude_m=sonar.altitude_m,
+    )
+
+
+def read_navigation(path: Path, config: SiteConfig) -> tuple[NavSamples, dict[str, Any]]:
+    from drivers.mavlink import read_nav_log
+
+    nav = read_nav_log(
+        path,
+        heading_source=config.mavlink.heading_source,
+        imu_source=config.mavlink.imu_source,
+        declination_deg=config.mavlink.declination_deg,
+    )
+    info = {
+        "autopilot": nav.autopilot,
+        "heading_source": nav.heading_source,
+        "imu_source": nav.imu_source,
+        "imu_samples": len(nav.imu),
+        "gnss_fixes": len(nav.gnss),
+        "headings": len(nav.heading),
+    }
+    return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude), info
+
+
+def ping_source(path: Path, skipped: dict[str, int]) -> Callable[[], Iterator[Ping]]:
+    """A callable yielding the log's pings afresh on each call (the pipeline reads the log
+    more than once instead of holding every frame in memory)."""
+    from drivers.oculus.logfile import LogReadReport, iter_pings
+
+    def pings() -> Iterator[Ping]:
+        report = LogReadReport()
+        yield from iter_pings(path, report)
+        skipped["corrupt_pings"] = report.corrupt_pings
+        skipped["truncated"] = int(report.truncated)
+
+    return pings
+
+
+def render(result: SurveyResult) -> tuple[np.ndarray, float, float]:
+    rendered = dict(((k, (img, cov)) for k, img, cov in result.mosaic.render_all()))
+    image, (west, north) = assemble(result.mosaic.tiles, rendered)
+    return image, west, north
+
+
+def replay(
+    sonar: Path,
+    nav: Path,
+    config_path: Path | None,
+    mode: str,
+    out: Path,
+    *,
+    truth: Path | None = None,
+    params: PipelineParams | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Map the logs and write the result folder; returns the report."""
+    started = time.perf_counter()
+    config = load_config(config_path)
+    params = params or PipelineParams()
+    samples, nav_info = read_navigation(nav, config)
+    skipped: dict[str, int] = {}
+    try:
+        result = map_survey(
+            ping_source(sonar, skipped), samples, mount_from_config(config.sonar), params,
+            Mode(mode), progress,
+        )
+    except ValueError as exc:
+        raise SeamapError(f"{nav}: {exc}") from None
+    if result.frames_read == 0:
+        raise SeamapError(f"{sonar}: no sonar pings in the log")
+    t0 = time.perf_counter()
+    image, west, north = render(result)
+    render_s = time.perf_counter() - t0
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SeamapError(f"{out}: cannot create the result folder ({exc.strerror})") from None
+    epsg = result.frame.epsg
+    write_geotiff(out / "mosaic.tif", image, west, north, params.mosaic_res_m, epsg)
+    write_png(out / "mosaic.png", image)
+    rows = write_trajectory(out / "trajectory.csv", result.frame, result.times, result.poses)
+    timings = {k: round(v, 4) for k, v in result.timings.items()}
+    timings["render"] = round(render_s, 4)
+    timings["total"] = round(time.perf_counter() - started, 4)
+    n = max(result.frames_read, 1)
+    report: dict[str, Any] = {
+        "mode": mode,
+        "inputs": {"sonar": str(sonar), "nav": str(nav), "config": str(config_path) if config_path else None},
+        "frames": {
+            "read": result.frames_read,
+            "mapped": result.frames_mapped,
+            "rejected": dict(result.rejected),
+            "registrations": len(result.edges),
+            "skipped_in_log": skipped,
+        },
+        "navigation": nav_info,
+        "crs": {"epsg": epsg, "res_m": params.mosaic_res_m, "west": west, "north": north},
+        "mosaic": {"width": int(image.shape[1]), "height": int(image.shape[0]), "tiles": len(result.mosaic.stacks)},
+        "trajectory_rows": rows,
+        "timings_s": timings,
+        "seconds_per_frame": {k: round(v / n, 6) for k, v in timings.items()},
+        "settings": {"config": asdict(config), "pipeline": asdict(params)},
+    }
+    if truth is not None:
+        from tools.evaluate import evaluate
+
+        report["accuracy"] = evaluate(truth, result, image, west, north, params.mosaic_res_m)
+    write_report(out / "report.json", report)
+    return report
