@@ -1,7 +1,8 @@
 """MAVLink navigation: logs (.tlog, DataFlash .bin) and messages into typed samples.
 
 ``convert`` turns one decoded message into a sample (shared with the live link);
-``navlog`` reads whole logs and summarises them for ``seamap info``.
+``framing`` finds and decodes the messages of a log file, past damage;
+``navlog`` reads whole logs into samples and summarises them for ``seamap info``.
 """
 
 from drivers.mavlink.convert import (
