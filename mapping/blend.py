@@ -105,7 +105,8 @@ class TopNStack:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.total.shape  # type: ignore[return-value]
+        rows, cols = self.total.shape
+        return rows, cols
 
     def add(
         self,

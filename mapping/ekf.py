@@ -101,7 +101,7 @@ def level_imu(
     return forward, starboard, yaw_rate
 
 
-class _Ekf(ExtendedKalmanFilter):  # type: ignore[misc]
+class _Ekf(ExtendedKalmanFilter):
     """filterpy's EKF with the nonlinear kinematic propagation of the paper's model."""
 
     def __init__(self) -> None:

@@ -336,8 +336,11 @@ class FmtRegistrar:
             search_px = search_m / self.grid.res_m
 
         def peak_at(theta: float) -> tuple[tuple[float, float], float]:
-            centre = self._expected_shift(prior, theta) if search_px is not None else None
-            assert prior is not None or centre is None
+            centre = (
+                self._expected_shift(prior, theta)
+                if prior is not None and search_px is not None
+                else None
+            )
             return self.translation(
                 earlier.spectrum, self._rotated(later, theta), centre, search_px
             )

@@ -117,7 +117,7 @@ class Quadrat:
 
 
 def _frame_template(side_px: float, bar_px: float) -> npt.NDArray[np.float32]:
-    size = int(math.ceil(side_px + 4 * bar_px)) | 1
+    size = math.ceil(side_px + 4 * bar_px) | 1
     c = (size - 1) / 2.0
     yy, xx = np.mgrid[0:size, 0:size]
     d = np.maximum(np.abs(xx - c), np.abs(yy - c))
@@ -147,7 +147,7 @@ def locate_quadrats(
         half = template.shape[0] // 2 + int(search_m / res_m)
         cx = (q.east - west) / res_m - 0.5
         cy = (north - q.north) / res_m - 0.5
-        x0, y0 = int(round(cx)) - half, int(round(cy)) - half
+        x0, y0 = round(cx) - half, round(cy) - half
         x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
         if x0 < 0 or y0 < 0 or x1 > image.shape[1] or y1 > image.shape[0]:
             found.append(None)
@@ -158,6 +158,7 @@ def locate_quadrats(
             continue
         response = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)
         _, score, _, (px, py) = cv2.minMaxLoc(response)
+
         # Sub-pixel peak by parabola in each axis.
         def refine(line: Array, k: int) -> float:
             if 0 < k < line.size - 1:
@@ -183,7 +184,9 @@ def quadrat_spacing_error(
             fa, fb = found[a], found[b]
             if fa is None or fb is None:
                 continue
-            true = math.hypot(quadrats[a].east - quadrats[b].east, quadrats[a].north - quadrats[b].north)
+            true = math.hypot(
+                quadrats[a].east - quadrats[b].east, quadrats[a].north - quadrats[b].north
+            )
             got = math.hypot(fa[0] - fb[0], fa[1] - fb[1])
             errors.append(got - true)
     located = sum(f is not None for f in found)

@@ -177,19 +177,12 @@ def _two_stage(
         if shared.size == 0:
             continue
         k = int(shared[shared.size // 2])
-        in_a = offsets[s][int(np.flatnonzero(subsets[s] == k)[0])]
-        in_b = offsets[s + 1][int(np.flatnonzero(subsets[s + 1] == k)[0])]
+        in_a = _as_relative(offsets[s][int(np.flatnonzero(subsets[s] == k)[0])])
+        in_b = _as_relative(offsets[s + 1][int(np.flatnonzero(subsets[s + 1] == k)[0])])
         # Submap s+1 in submap s: frame k in s, then back from k to the anchor of s+1.
-        between = _compose_array(in_a, _inverse_array(in_b))
+        between = RelativePose.from_matrix(in_a.matrix() @ np.linalg.inv(in_b.matrix()))
         submap_edges.append(
-            Edge(
-                s,
-                s + 1,
-                float(between[0]),
-                float(between[1]),
-                float(between[2]),
-                float(shared.size),
-            )
+            Edge(s, s + 1, between.forward_m, between.starboard_m, between.yaw_rad, shared.size)
         )
     weights = np.array([[sub.size, sub.size] for sub in subsets], float)
     solution = optimise(submap_priors, submap_priors, submap_edges, params.optimiser, weights)
@@ -210,11 +203,8 @@ def _compose_array(a: Array, rel: Array) -> Array:
     return compose(a, RelativePose(float(rel[0]), float(rel[1]), float(rel[2])))
 
 
-def _inverse_array(rel: Array) -> Array:
-    inverse = RelativePose.from_matrix(
-        np.linalg.inv(RelativePose(float(rel[0]), float(rel[1]), float(rel[2])).matrix())
-    )
-    return np.array([inverse.forward_m, inverse.starboard_m, inverse.yaw_rad])
+def _as_relative(rel: Array) -> RelativePose:
+    return RelativePose(float(rel[0]), float(rel[1]), float(rel[2]))
 
 
 def _fit_rigid(offsets: Array, targets: Array) -> Array:

@@ -130,7 +130,9 @@ def cartesian_tables(
     r = grid.res_m
     forward = grid.forward_max_m - (np.arange(rows)[:, None] + 0.5) * r
     starboard = grid.starboard_min_m + (np.arange(cols)[None, :] + 0.5) * r
-    forward, starboard = np.broadcast_arrays(forward, starboard)
+    forward, starboard = (
+        np.asarray(a, np.float64) for a in np.broadcast_arrays(forward, starboard)
+    )
     slant, bearing = ground_to_polar(forward, starboard, fan.altitude_m, fan.tilt_rad)
     bearings = np.asarray(fan.bearings_rad)
     # The bearing table is not evenly spaced: interpolate the beam index, never assume a step.

@@ -29,6 +29,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,8 +85,8 @@ def _residuals_and_jacobian(
     sqrt_alpha = math.sqrt(params.alpha) * ang
     m = len(edges)
     # Local terms, vectorised over edges.
-    ei = np.array([e.i for e in edges], int)
-    ej = np.array([e.j for e in edges], int)
+    ei = np.array([e.i for e in edges], np.int64)
+    ej = np.array([e.j for e in edges], np.int64)
     meas = np.array([(e.forward_m, e.starboard_m, e.yaw_rad) for e in edges], float).reshape(m, 3)
     w = np.sqrt(params.lam * np.array([e.weight for e in edges], float))
     dx = poses[ej, 0] - poses[ei, 0]
@@ -101,12 +102,12 @@ def _residuals_and_jacobian(
             w * sqrt_alpha * _wrap(poses[ej, 2] - psi - meas[:, 2]),
         ]
     )
-    rows: list[Array] = []
-    cols: list[Array] = []
+    rows: list[IntArray] = []
+    cols: list[IntArray] = []
     vals: list[Array] = []
-    base = np.arange(m) * 3
+    base = np.arange(m, dtype=np.int64) * 3
 
-    def add(r: Array, col: Array, v: Array) -> None:
+    def add(r: IntArray, col: IntArray, v: Array) -> None:
         rows.append(r)
         cols.append(col)
         vals.append(v)
@@ -126,7 +127,7 @@ def _residuals_and_jacobian(
     add(base + 2, 3 * ej + 2, w * sqrt_alpha)
 
     # Global priors.
-    idx = np.arange(n)
+    idx = np.arange(n, dtype=np.int64)
     wp = np.sqrt(prior_weights[:, 0])
     wa = np.sqrt(prior_weights[:, 1]) * sqrt_alpha
     r_prior = np.column_stack(

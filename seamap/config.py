@@ -151,7 +151,9 @@ def config_from_dict(data: dict[str, Any]) -> SiteConfig:
         sections[name] = _section(name, hints[name], table)
     config = SiteConfig(**sections)
     if "/" in config.daemon.vehicle or not config.daemon.vehicle:
-        raise SeamapError(f"config: [daemon] vehicle {config.daemon.vehicle!r} must be a non-empty id without '/'")
+        raise SeamapError(
+            f"config: [daemon] vehicle {config.daemon.vehicle!r} must be a non-empty id without '/'"
+        )
     return config
 
 

@@ -94,8 +94,12 @@ def replay(
     skipped: dict[str, int] = {}
     try:
         result = map_survey(
-            ping_source(sonar, skipped), samples, mount_from_config(config.sonar), params,
-            Mode(mode), progress,
+            ping_source(sonar, skipped),
+            samples,
+            mount_from_config(config.sonar),
+            params,
+            Mode(mode),
+            progress,
         )
     except ValueError as exc:
         raise SeamapError(f"{nav}: {exc}") from None
@@ -118,7 +122,11 @@ def replay(
     n = max(result.frames_read, 1)
     report: dict[str, Any] = {
         "mode": mode,
-        "inputs": {"sonar": str(sonar), "nav": str(nav), "config": str(config_path) if config_path else None},
+        "inputs": {
+            "sonar": str(sonar),
+            "nav": str(nav),
+            "config": str(config_path) if config_path else None,
+        },
         "frames": {
             "read": result.frames_read,
             "mapped": result.frames_mapped,
@@ -128,7 +136,11 @@ def replay(
         },
         "navigation": nav_info,
         "crs": {"epsg": epsg, "res_m": params.mosaic_res_m, "west": west, "north": north},
-        "mosaic": {"width": int(image.shape[1]), "height": int(image.shape[0]), "tiles": len(result.mosaic.stacks)},
+        "mosaic": {
+            "width": int(image.shape[1]),
+            "height": int(image.shape[0]),
+            "tiles": len(result.mosaic.stacks),
+        },
         "trajectory_rows": rows,
         "timings_s": timings,
         "seconds_per_frame": {k: round(v / n, 6) for k, v in timings.items()},

@@ -57,10 +57,7 @@ def run(args: argparse.Namespace) -> int:
         imu_source=config.mavlink.imu_source,
         declination_deg=config.mavlink.declination_deg,
     )
-    print(
-        f"      sonar: {n_pings} pings, {report.corrupt_pings} corrupt, "
-        f"brightest sample {peak}"
-    )
+    print(f"      sonar: {n_pings} pings, {report.corrupt_pings} corrupt, brightest sample {peak}")
     print(
         f"      nav ({nav.autopilot}): {len(nav.imu)} IMU samples ({nav.imu_source}), "
         f"{len(nav.gnss)} GNSS fixes, {len(nav.heading)} headings ({nav.heading_source})"

@@ -22,7 +22,7 @@ def register(subparsers: Any) -> None:
 
 
 def detect_log_kind(path: Path) -> str:
-    """"oculus" or "mavlink", from the file's first bytes (not its name)."""
+    """ "oculus" or "mavlink", from the file's first bytes (not its name)."""
     try:
         with path.open("rb") as stream:
             head = stream.read(16)

@@ -28,7 +28,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--mode", choices=MODES, default="single-stage")
     parser.add_argument("--out", type=Path, required=True, help="result folder")
     parser.add_argument(
-        "--truth", type=Path, default=None, help="a simulator's truth.json: add accuracy to the report"
+        "--truth",
+        type=Path,
+        default=None,
+        help="a simulator's truth.json: add accuracy to the report",
     )
     parser.set_defaults(handler=run)
 
@@ -67,7 +70,13 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress()
     try:
         report = replay(
-            args.sonar, args.nav, args.config, args.mode, args.out, truth=args.truth, progress=progress
+            args.sonar,
+            args.nav,
+            args.config,
+            args.mode,
+            args.out,
+            truth=args.truth,
+            progress=progress,
         )
     finally:
         progress.done()

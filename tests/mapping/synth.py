@@ -59,5 +59,7 @@ def view(
     map_y = (world.shape[0] - n / WORLD_RES_M - 0.5).astype(np.float32)
     image = cv2.remap(world, map_x, map_y, cv2.INTER_LINEAR)
     if rng is not None:
-        image = image * rng.gamma(speckle_shape, 1.0 / speckle_shape, image.shape).astype(np.float32)
+        image = image * rng.gamma(speckle_shape, 1.0 / speckle_shape, image.shape).astype(
+            np.float32
+        )
     return np.where(mask, image, 0.0).astype(np.float32)

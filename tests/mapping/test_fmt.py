@@ -38,7 +38,7 @@ def frame_pair(scene, forward, starboard, yaw, heading, rng):
 
 
 def test_recovers_known_shifts_and_rotations_within_a_pixel_and_a_tenth_of_a_degree(scene):
-    world, grid, mask = scene
+    _, grid, mask = scene
     registrar = FmtRegistrar(grid, mask)
     rng = np.random.default_rng(11)
     errors = []
@@ -56,7 +56,7 @@ def test_recovers_known_shifts_and_rotations_within_a_pixel_and_a_tenth_of_a_deg
 
 
 def test_guided_search_finds_the_motion_near_the_prior(scene):
-    world, grid, mask = scene
+    _, grid, mask = scene
     registrar = FmtRegistrar(grid, mask)
     rng = np.random.default_rng(5)
     a, b = frame_pair(scene, 0.12, -0.05, math.radians(1.5), 0.7, rng)

@@ -62,11 +62,20 @@ def test_noisy_priors_are_corrected_by_precise_edges() -> None:
     edges = []
     for e in exact_edges(truth):
         edges.append(
-            Edge(e.i, e.j, e.forward_m + rng.normal(0, 0.003), e.starboard_m + rng.normal(0, 0.003),
-                 e.yaw_rad + rng.normal(0, 0.001))
+            Edge(
+                e.i,
+                e.j,
+                e.forward_m + rng.normal(0, 0.003),
+                e.starboard_m + rng.normal(0, 0.003),
+                e.yaw_rad + rng.normal(0, 0.001),
+            )
         )
     priors = truth + np.column_stack(
-        [rng.normal(0, 1, len(truth)), rng.normal(0, 1, len(truth)), rng.normal(0, 0.03, len(truth))]
+        [
+            rng.normal(0, 1, len(truth)),
+            rng.normal(0, 1, len(truth)),
+            rng.normal(0, 0.03, len(truth)),
+        ]
     )
     solution = optimise(priors, priors, edges)
     prior_error = np.linalg.norm(priors[:, :2] - truth[:, :2], axis=1).mean()

@@ -1,0 +1,107 @@
+"""The command line as a user meets it: one line and exit status 2 on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def seamap(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "seamap", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess[str], *fragments: str) -> None:
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0]
+
+
+def test_help_lists_the_subcommands() -> None:
+    result = seamap("--help")
+    assert result.returncode == 0
+    for command in ("info", "simulate", "demo"):
+        assert command in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        (b"", "empty file"),
+        (b"hello, this is not a log\n" * 10, "not an Oculus or MAVLink log"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(200), "not an Oculus or MAVLink log"),
+    ],
+)
+def test_info_on_a_non_log_is_one_line_and_status_2(
+    tmp_path: Path, content: bytes, reason: str
+) -> None:
+    path = tmp_path / "thing.tlog"
+    path.write_bytes(content)
+    assert_one_line_error(seamap("info", path), str(path), reason)
+
+
+def test_info_on_a_missing_file(tmp_path: Path) -> None:
+    assert_one_line_error(seamap("info", tmp_path / "nope.oculus"), "nope.oculus", "no such file")
+
+
+def test_info_on_a_directory(tmp_path: Path) -> None:
+    assert_one_line_error(seamap("info", tmp_path), "directory")
+
+
+def test_simulate_then_info(tmp_path: Path) -> None:
+    out = tmp_path / "sim"
+    result = seamap(
+        "simulate",
+        "--scenario",
+        "quadrats",
+        "--seed",
+        "3",
+        "--out",
+        out,
+        "--max-pings",
+        "12",
+        "--beams",
+        "128",
+    )
+    assert result.returncode == 0, result.stderr
+    for name in ("sonar.oculus", "nav.tlog", "truth.json", "site.toml", "seabed.tif"):
+        assert (out / name).is_file(), name
+
+    sonar = seamap("info", out / "sonar.oculus", "--json")
+    assert sonar.returncode == 0, sonar.stderr
+    summary = json.loads(sonar.stdout)
+    assert summary["kind"] == "oculus"
+    assert summary["count"] == 12
+    assert summary["beams"] == [128]
+    assert summary["first_time"] < summary["last_time"]
+
+    nav = seamap("info", out / "nav.tlog", "--json")
+    assert nav.returncode == 0, nav.stderr
+    summary = json.loads(nav.stdout)
+    assert summary["kind"] == "mavlink"
+    assert summary["messages"]["GPS_RAW_INT"] > 0
+    assert summary["messages"]["RAW_IMU"] > summary["messages"]["GPS_RAW_INT"]
+    assert summary["count"] == sum(summary["messages"].values())
+    assert summary["first_time"] <= summary["last_time"]
+
+    text = seamap("info", out / "nav.tlog")
+    assert text.returncode == 0
+    assert "GPS_RAW_INT" in text.stdout
+
+
+def test_simulate_rejects_an_unknown_scenario(tmp_path: Path) -> None:
+    result = seamap("simulate", "--scenario", "moon", "--out", tmp_path)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr

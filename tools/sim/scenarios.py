@@ -1,0 +1,386 @@
+"""Survey scenarios: every number the simulator uses, in one frozen record per scenario.
+
+A ``Scenario`` holds the site (where, seabed, features), the survey (lawnmower, boat
+motion), the sonar (M1200d in low-frequency mode) and the sensor error models. Units are
+SI with the unit in the name where it helps (``_m``, ``_s``, ``_mps``); angles at this
+edge are degrees (``_deg``) and bearings are grid bearings (degrees clockwise from UTM
+grid north) unless the name says ``true``. Positions ``*_east_m``/``*_north_m`` are in the
+site's local frame: metres east/north of the site's UTM origin point (grid-aligned).
+
+``SCENARIOS`` maps the public names (``quadrats``, ``farm``, ``quadrats-current``) to
+their records; ``resolve_scenario`` applies keyword overrides (any field, e.g.
+``max_pings=20, n_beams=128, flavour="px4"``) and checks them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+from seamap.errors import SeamapError
+
+# 2024-06-12T14:00:00Z: a fixed scenario start so that files never depend on the wall clock.
+DEFAULT_START_TIME = 1718200800.0
+
+FLAVOURS = ("ardupilot", "px4")
+
+
+@dataclass(frozen=True)
+class OysterBed:
+    """A rectangular oyster bed of a farm (local frame, metres; bearing of its long side)."""
+
+    centre_east_m: float
+    centre_north_m: float
+    length_m: float
+    width_m: float
+    bearing_deg: float
+    clumps_per_m2: float
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything a simulated survey depends on, besides the seed."""
+
+    name: str
+    description: str
+    origin_lat_deg: float
+    """WGS84 latitude of the site origin (the local frame's origin, rounded to a UTM metre)."""
+    origin_lon_deg: float
+    start_time: float = DEFAULT_START_TIME
+    """UNIX seconds (boat computer clock) of the first log record."""
+
+    # --- Earth's field at the site (WMM-like values for the Chesapeake Bay, 2024) ---
+    declination_deg: float = -10.9
+    """Magnetic declination, east of true north (degrees)."""
+    inclination_deg: float = 65.6
+    """Magnetic inclination, downwards (degrees)."""
+    field_mgauss: float = 519.0
+    """Total field intensity (milligauss)."""
+
+    # --- water and seabed ---
+    water_depth_m: float = 1.2
+    """Depth of the seabed's mean plane below the still water surface at the local origin."""
+    seabed_slope_east: float = 0.002
+    """Increase of depth per metre east (m/m): a gently sloping bed."""
+    seabed_slope_north: float = -0.003
+    """Increase of depth per metre north (m/m)."""
+    seabed_resolution_m: float = 0.01
+    """Cell size of the reflectivity and height maps (metres)."""
+    seabed_margin_m: float = 1.0
+    """Map margin beyond the farthest point the sonar can see (metres)."""
+    sand_reflectivity: float = 0.34
+    """Mean reflectivity of the sand (0..1; the truth GeoTIFF stores 255 * reflectivity)."""
+    ripple_wavelength_m: float = 0.32
+    ripple_amplitude_m: float = 0.008
+    """Half the crest-to-trough height of the sand ripples (metres)."""
+    ripple_bearing_deg: float = 35.0
+    """Grid bearing of the ripple wave vector (crests run perpendicular to it)."""
+    n_shell_patches: int = 6
+    scattered_clumps_per_m2: float = 0.02
+    """Oyster clumps scattered over the whole map (per square metre)."""
+    oyster_beds: tuple[OysterBed, ...] = ()
+    oysters_per_quadrat: int = 9
+
+    # --- the 2 x 4 quadrat array (paper, Sec. IV-A-2) ---
+    quadrat_centre_east_m: float = 0.0
+    quadrat_centre_north_m: float = 0.0
+    quadrat_row_bearing_deg: float = 78.0
+    """Grid bearing of the rows (the line through the frame centres of a row)."""
+    quadrat_pvc_side: str = "right"
+    """Which side of the row axis (looking along the row bearing) the PVC row lies on."""
+
+    # --- survey (lawnmower) and boat motion ---
+    survey_centre_east_m: float = 0.0
+    survey_centre_north_m: float = 0.0
+    lane_bearing_deg: float = 0.0
+    """Grid bearing of the first lane; lanes alternate direction; the next lane lies to the
+    right of the first."""
+    lane_length_m: float = 13.0
+    lane_spacing_m: float = 4.0
+    n_lanes: int = 3
+    run_in_m: float = 2.0
+    """Straight approach before the first lane and after the last (metres)."""
+    turn_radius_m: float = 2.0
+    speed_mps: float = 1.0
+    accel_time_s: float = 4.0
+    """Time to reach the survey speed from rest, and to stop at the end (seconds)."""
+    speed_wobble: float = 0.04
+    """Relative standard deviation of the speed about its set point."""
+    cross_track_m: float = 0.08
+    """Standard deviation of the autopilot's cross-track error (metres)."""
+    current_mps: float = 0.0
+    """Water current speed (m/s); the boat crabs into it to hold its track."""
+    current_toward_deg: float = 90.0
+    """Grid bearing the current flows toward."""
+    yaw_wobble_deg: float = 2.0
+    """Standard deviation of the heading oscillation about the crab-corrected course."""
+    roll_deg: float = 1.5
+    """Standard deviation of the wave-induced roll."""
+    pitch_deg: float = 1.0
+    """Standard deviation of the wave-induced pitch."""
+    trim_deg: float = 1.0
+    """Bow-up pitch at survey speed."""
+    heave_m: float = 0.015
+    """Standard deviation of the wave-induced heave."""
+    wave_period_s: float = 2.2
+    """Dominant period of the short chop."""
+    antenna_height_m: float = 0.10
+    """Height of the GPS antenna (the vehicle reference point) above the waterline."""
+
+    # --- sonar (Oculus M1200d, low-frequency mode) ---
+    n_beams: int = 512
+    fan_deg: float = 130.0
+    beam_edge_ratio: float = 1.3
+    """Bearing spacing at the fan edges over that at the centre (the real table is denser
+    in the centre)."""
+    horizontal_beamwidth_deg: float = 0.6
+    """-3 dB width of one beam (the across-beam blur)."""
+    vertical_aperture_deg: float = 20.0
+    """-3 dB full width of the two-way vertical beam pattern."""
+    range_m: float = 5.0
+    range_resolution_m: float = 0.01
+    ping_rate_hz: float = 10.0
+    ping_jitter_s: float = 0.002
+    """Standard deviation of the sonar's ping interval jitter."""
+    sonar_latency_s: float = 0.0
+    """Delay from the ping's acquisition to its receipt by the boat computer."""
+    mount_x_m: float = -0.45
+    mount_y_m: float = 0.0
+    mount_z_m: float = 0.3
+    mount_yaw_deg: float = 0.0
+    tilt_deg: float = 15.0
+    master_mode: int = 1
+    frequency_hz: float = 1.2e6
+    gain_percent: float = 50.0
+    gamma: int = 127
+    """Gamma correction byte (127 ~ exponent 0.5) applied before 8-bit quantisation."""
+    speed_of_sound_mps: float = 1510.0
+    salinity_ppt: float = 12.0
+    water_temperature_c: float = 24.0
+    full_scale: float = 0.25
+    """Linear echo intensity that maps to pixel 255 (before gamma)."""
+    noise_floor: float = 0.0008
+    """Mean additive noise intensity (linear; ~14 after gamma and 8 bits)."""
+    speckle_shape: float = 1.5
+    """Gamma shape of the multiplicative speckle (1 = fully developed, Rayleigh amplitude)."""
+    tvg_residual_exponent: float = 0.5
+    """The sonar's TVG leaves intensity * (range / 2.5 m) ** exponent (not in the gains)."""
+    tvg_step_db: float = 0.75
+    """The TVG gain is applied in steps of this many dB: a sawtooth of ring artefacts."""
+    row_gain_jitter_db: float = 0.2
+    """Standard deviation of a fixed per-row gain error (more rings)."""
+    gain_assist_db: float = 0.5
+    """Standard deviation of the per-ping automatic gain change."""
+
+    # --- navigation sensors ---
+    flavour: str = "ardupilot"
+    """Autopilot: "ardupilot" (RAW_IMU, ArduPilot scaling) or "px4" (HIGHRES_IMU, SI)."""
+    imu_rate_hz: float = 55.0
+    gps_rate_hz: float = 2.0
+    heading_rate_hz: float = 2.0
+    """Rate of ATTITUDE, GLOBAL_POSITION_INT and VFR_HUD (the compass-like heading)."""
+    gps_bias_sigma_m: float = 1.0
+    """Standard deviation of the slowly wandering GPS bias, per axis (first-order
+    Gauss-Markov)."""
+    gps_bias_tau_s: float = 300.0
+    gps_noise_m: float = 0.25
+    """White GPS noise per axis (metres)."""
+    gps_vertical_sigma_m: float = 1.5
+    compass_bias_deg: float = 2.0
+    """Constant part of the heading bias (degrees)."""
+    compass_bias_wander_deg: float = 0.3
+    compass_bias_tau_s: float = 600.0
+    compass_noise_deg: float = 1.5
+    attitude_noise_deg: float = 0.3
+    """Noise of the reported roll and pitch (degrees)."""
+    accel_noise_mps2: float = 0.08
+    accel_bias_sigma_mps2: float = 0.05
+    gyro_noise_dps: float = 0.15
+    gyro_bias_sigma_dps: float = 0.2
+    imu_bias_wander: float = 0.2
+    """Slow wander of each IMU bias, as a fraction of its sigma (Gauss-Markov, 300 s)."""
+    mag_noise_mgauss: float = 3.0
+    stamp_delay_s: float = 0.002
+    """Fixed part of the telemetry link delay (autopilot to boat computer)."""
+    stamp_jitter_s: float = 0.002
+    """Mean of the exponential random part of the telemetry link delay."""
+    gcs_heartbeat_period_s: float = 1.0
+    autopilot_uptime_s: float = 183.4
+    """Autopilot uptime at the scenario start (time_boot_ms starts there)."""
+    sonar_uptime_s: float = 612.0
+    """Sonar uptime at the scenario start (pingStartTime, ping ids)."""
+
+    # --- cutting a survey short (fast tests) ---
+    duration_s: float | None = None
+    max_pings: int | None = None
+
+    @property
+    def declination_rad(self) -> float:
+        return math.radians(self.declination_deg)
+
+
+CHESAPEAKE_HORN_POINT = (38.6010, -76.1340)
+"""Choptank River off Horn Point (UMCES), Cambridge, MD: the paper's region, 3-4 ft deep."""
+CHOPTANK_FARM = (38.6290, -76.2160)
+"""Choptank River shallows near Castle Haven, MD: a stand-in oyster lease."""
+
+QUADRATS = Scenario(
+    name="quadrats",
+    description=(
+        "The paper's test site: a 2 x 4 array of aluminium and PVC quadrats on rippled sand "
+        "with a few oysters, surveyed with three 13 m lanes (about 15 m x 15 m)."
+    ),
+    origin_lat_deg=CHESAPEAKE_HORN_POINT[0],
+    origin_lon_deg=CHESAPEAKE_HORN_POINT[1],
+)
+
+QUADRATS_CURRENT = dataclasses.replace(
+    QUADRATS,
+    name="quadrats-current",
+    description=(
+        "The quadrats survey in a 0.16 m/s cross-current: the boat crabs about 9 degrees, "
+        "so its heading differs from its course over ground."
+    ),
+    current_mps=0.16,
+    current_toward_deg=90.0,
+)
+
+FARM = Scenario(
+    name="farm",
+    description=(
+        "An on-bottom oyster farm, 40 m x 30 m of lanes: oyster beds and scattered clumps, "
+        "shell patches, ripples, and the quadrat array inside."
+    ),
+    origin_lat_deg=CHOPTANK_FARM[0],
+    origin_lon_deg=CHOPTANK_FARM[1],
+    start_time=DEFAULT_START_TIME + 86400.0,
+    water_depth_m=1.15,
+    seabed_slope_east=0.003,
+    seabed_slope_north=0.001,
+    ripple_wavelength_m=0.28,
+    ripple_bearing_deg=120.0,
+    n_shell_patches=40,
+    scattered_clumps_per_m2=0.08,
+    oyster_beds=(
+        OysterBed(-12.0, 6.0, 14.0, 6.0, 15.0, 3.0),
+        OysterBed(6.0, 10.0, 12.0, 5.0, 100.0, 2.5),
+        OysterBed(-8.0, -8.0, 10.0, 7.0, 60.0, 2.0),
+        OysterBed(14.0, -9.0, 9.0, 6.0, 170.0, 3.5),
+    ),
+    quadrat_centre_east_m=4.0,
+    quadrat_centre_north_m=-1.0,
+    quadrat_row_bearing_deg=70.0,
+    lane_bearing_deg=90.0,
+    lane_length_m=40.0,
+    lane_spacing_m=4.0,
+    n_lanes=8,
+    current_mps=0.05,
+    current_toward_deg=200.0,
+)
+
+SCENARIOS: dict[str, Scenario] = {s.name: s for s in (QUADRATS, FARM, QUADRATS_CURRENT)}
+
+
+def _check_value(name: str, value: Any, annotation: Any) -> Any:
+    """Check an override against the field's type; ints are accepted for floats."""
+    args = typing.get_args(annotation)
+    if type(None) in args:
+        if value is None:
+            return None
+        annotation = next(a for a in args if a is not type(None))
+    if annotation is float and isinstance(value, int | float) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise SeamapError(f"simulate: {name} must be finite, got {value!r}")
+        return float(value)
+    if annotation is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if annotation is str and isinstance(value, str):
+        return value
+    if annotation is bool and isinstance(value, bool):
+        return value
+    if typing.get_origin(annotation) in (tuple, dict):
+        return value
+    raise SeamapError(
+        f"simulate: {name} = {value!r} is not a {getattr(annotation, '__name__', annotation)}"
+    )
+
+
+def resolve_scenario(name: str, **overrides: Any) -> Scenario:
+    """The named scenario with overrides applied; a bad name, key or value is a SeamapError."""
+    try:
+        base = SCENARIOS[name]
+    except KeyError:
+        raise SeamapError(
+            f"simulate: unknown scenario {name!r} (known: {', '.join(SCENARIOS)})"
+        ) from None
+    hints = typing.get_type_hints(Scenario)
+    checked: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if key not in hints or key in ("name", "description"):
+            raise SeamapError(f"simulate: unknown override {key!r}")
+        checked[key] = _check_value(key, value, hints[key])
+    scenario = dataclasses.replace(base, **checked)
+    _validate(scenario)
+    return scenario
+
+
+def parse_overrides(texts: dict[str, str]) -> dict[str, Any]:
+    """Command-line overrides (``{"n_beams": "128", "flavour": "px4"}``) typed by the
+    Scenario fields they name ("none" clears an optional field); SeamapError names a bad
+    key or value. The result goes to ``resolve_scenario`` / ``simulate``."""
+    hints = typing.get_type_hints(Scenario)
+    values: dict[str, Any] = {}
+    for key, text in texts.items():
+        if key not in hints or key in ("name", "description", "oyster_beds"):
+            raise SeamapError(f"simulate: unknown override {key!r}")
+        args = typing.get_args(hints[key])
+        optional = type(None) in args
+        kind = next((a for a in args if a is not type(None)), hints[key])
+        if optional and text.strip().lower() == "none":
+            values[key] = None
+            continue
+        try:
+            values[key] = kind(text) if kind in (int, float, str) else None
+        except ValueError:
+            raise SeamapError(f"simulate: {key} = {text!r} is not a {kind.__name__}") from None
+        if kind is bool:
+            if text.lower() not in ("true", "false"):
+                raise SeamapError(f"simulate: {key} = {text!r} is not true or false")
+            values[key] = text.lower() == "true"
+    return values
+
+
+def _validate(s: Scenario) -> None:
+    problems = []
+    if s.flavour not in FLAVOURS:
+        problems.append(f"flavour {s.flavour!r} is not one of {', '.join(FLAVOURS)}")
+    if not 2 <= s.n_beams <= 1024:
+        problems.append(f"n_beams {s.n_beams} is not in 2..1024")
+    if not 0.001 <= s.range_resolution_m <= s.range_m / 8:
+        problems.append(f"range_resolution_m {s.range_resolution_m} does not fit range {s.range_m}")
+    if not 0.5 <= s.ping_rate_hz <= 40.0:
+        problems.append(f"ping_rate_hz {s.ping_rate_hz} is not in 0.5..40")
+    if s.max_pings is not None and s.max_pings < 1:
+        problems.append(f"max_pings {s.max_pings} must be at least 1")
+    if s.duration_s is not None and s.duration_s <= 0:
+        problems.append(f"duration_s {s.duration_s} must be positive")
+    if s.current_mps < 0 or s.current_mps >= 0.8 * s.speed_mps:
+        problems.append(f"current_mps {s.current_mps} must be in [0, 0.8 * speed_mps)")
+    if s.sonar_latency_s < 0 or s.gps_bias_sigma_m < 0:
+        problems.append("sonar_latency_s and gps_bias_sigma_m must not be negative")
+    if s.lane_spacing_m <= 0 or s.n_lanes < 1 or s.lane_length_m <= 0:
+        problems.append("the lawnmower needs n_lanes >= 1 and positive lane length and spacing")
+    if not 0.0 < s.tilt_deg < 60.0:
+        problems.append(f"tilt_deg {s.tilt_deg} is not in (0, 60)")
+    if problems:
+        raise SeamapError(f"simulate {s.name}: " + "; ".join(problems))
+
+
+def scenario_dict(s: Scenario) -> dict[str, Any]:
+    """The scenario as JSON-ready data (for truth.json)."""
+    data = dataclasses.asdict(s)
+    data["oyster_beds"] = [dataclasses.asdict(b) for b in s.oyster_beds]
+    return data

@@ -1,0 +1,101 @@
+"""The survey folder's maps and config: seabed.tif, seabed_height.tif, site.toml.
+
+(``truth.json`` is ``truth.py``'s, ``sonar.oculus`` ``survey.py``'s, ``nav.tlog``
+``tlog.py``'s.)
+
+seabed.tif: uint8 GeoTIFF, single band, the site's UTM CRS, north-up, square cells:
+255 x the seabed reflectivity the sonar model saw (1..255; 0 = no data).
+seabed_height.tif: int16, same grid: height above the seabed's mean plane in units of
+``height_scale_m`` (0.1 mm; also the band's GDAL scale).
+site.toml: the SiteConfig of the simulated boat (mount, altitude, declination, the IMU
+message of the flavour).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+
+from seamap.config import MavlinkConfig, SiteConfig, SonarConfig, dump_config
+from tools.sim.scenarios import Scenario
+from tools.sim.seabed import Seabed
+from tools.sim.site import SiteFrame
+
+HEIGHT_STEP_M = 1e-4
+
+
+def write_seabed(folder: Path, seabed: Seabed, site: SiteFrame) -> dict[str, Any]:
+    """Write seabed.tif and seabed_height.tif; returns the truth's ``seabed`` section."""
+    west, north = site.to_utm(np.array(seabed.west), np.array(seabed.north))
+    res = seabed.resolution
+    transform = Affine(res, 0.0, float(west), 0.0, -res, float(north))
+    h, w = seabed.shape
+    profile = {
+        "driver": "GTiff",
+        "width": w,
+        "height": h,
+        "count": 1,
+        "crs": f"EPSG:{site.epsg}",
+        "transform": transform,
+        "compress": "deflate",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+    }
+    with rasterio.open(folder / "seabed.tif", "w", dtype="uint8", nodata=0, **profile) as dst:
+        dst.write(seabed.reflectivity, 1)
+    # Heights in 0.1 mm steps as int16: float32 noise would not compress.
+    height = np.clip(np.rint(seabed.height / HEIGHT_STEP_M), -32767, 32767).astype(np.int16)
+    with rasterio.open(
+        folder / "seabed_height.tif", "w", dtype="int16", predictor=2, **profile
+    ) as dst:
+        dst.write(height, 1)
+        dst.scales = (HEIGHT_STEP_M,)
+        dst.units = ("m",)
+    return {
+        "file": "seabed.tif",
+        "height_file": "seabed_height.tif",
+        "height_scale_m": HEIGHT_STEP_M,
+        "resolution_m": seabed.resolution,
+        "west": float(west),
+        "north": float(north),
+        "east": round(float(west) + w * seabed.resolution, 6),
+        "south": round(float(north) - h * seabed.resolution, 6),
+        "width_px": w,
+        "height_px": h,
+        "reflectivity_scale": "pixel = round(255 * reflectivity), 1..255; 0 = no data",
+    }
+
+
+def site_config(s: Scenario, altitude_m: float) -> SiteConfig:
+    """The SiteConfig matching the simulated boat."""
+    base = SiteConfig()
+    sonar = replace(
+        base.sonar,
+        mount_x_m=s.mount_x_m,
+        mount_y_m=s.mount_y_m,
+        mount_z_m=s.mount_z_m,
+        mount_yaw_deg=s.mount_yaw_deg,
+        tilt_deg=s.tilt_deg,
+        altitude_m=round(altitude_m, 3),
+    )
+    mav = replace(
+        base.mavlink,
+        imu_source="highres" if s.flavour == "px4" else "raw",
+        declination_deg=s.declination_deg,
+    )
+    assert isinstance(sonar, SonarConfig) and isinstance(mav, MavlinkConfig)
+    return replace(base, sonar=sonar, mavlink=mav)
+
+
+def write_site_config(path: Path, config: SiteConfig, s: Scenario) -> None:
+    header = (
+        f"# seamap site configuration of the simulated boat (scenario {s.name}).\n"
+        "# Written by tools.sim; the mount and altitude match truth.json.\n\n"
+    )
+    path.write_text(header + dump_config(config), encoding="utf-8")
