@@ -194,18 +194,28 @@ class FmtRegistrar:
         self._map_y = (ky + n // 2).astype(np.float32)
         self._angle_step = math.pi / p.n_angles
 
-    def prepare(self, image: npt.NDArray[np.floating] | npt.NDArray[np.integer]) -> PreparedFrame:
-        """Window, pad and transform one frame (``image`` on this registrar's grid)."""
+    def prepare(
+        self,
+        image: npt.NDArray[np.floating] | npt.NDArray[np.integer],
+        mask: npt.NDArray[np.bool_] | None = None,
+    ) -> PreparedFrame:
+        """Window, pad and transform one frame (``image`` on this registrar's grid).
+
+        mask: where the frame has data, when not the registrar's fan (a frame warped into
+        another frame's grid); its edge gets the same Hamming taper.
+        """
         if image.shape != self.grid.shape:
             raise ValueError(f"frame shape {image.shape} differs from grid {self.grid.shape}")
         frame = image.astype(np.float32, copy=False)
-        values = frame[self.mask]
+        if mask is None:
+            mask, window = self.mask, self.window
+        else:
+            window = hamming_taper(mask, self.params.taper_px)
+        values = frame[mask]
         mean = float(values.mean()) if values.size else 0.0
         padded = np.zeros((self.n, self.n), np.float32)
         rows, cols = self.grid.shape
-        padded[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = (
-            frame - mean
-        ) * self.window
+        padded[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = (frame - mean) * window
         spectrum = scipy.fft.rfft2(padded, workers=1).astype(np.complex64)
         return PreparedFrame(
             windowed=padded,
@@ -213,6 +223,34 @@ class FmtRegistrar:
             spectrum=spectrum,
             polar_spectrum=self._polar_spectrum(spectrum),
         )
+
+    def register_far(
+        self,
+        earlier: PreparedFrame,
+        later_image: FloatImage,
+        prior: RelativePose,
+        search_m: float,
+    ) -> Registration:
+        """Register frames whose relative pose is far from identity (loop closures between
+        lanes, often half a turn apart): the later frame is first moved into the earlier
+        frame's grid by ``prior``, the small residual registered, and the two composed."""
+        to_metric = self.grid.pixel_to_metric()
+        to_pixel = np.linalg.inv(to_metric)
+        prior_pixels = to_pixel @ prior.matrix() @ to_metric  # later pixel -> earlier pixel
+        rows, cols = self.grid.shape
+        warped = cv2.warpAffine(later_image, prior_pixels[:2], (cols, rows), flags=cv2.INTER_LINEAR)
+        warped_mask = cv2.warpAffine(
+            self.mask.astype(np.uint8), prior_pixels[:2], (cols, rows), flags=cv2.INTER_NEAREST
+        ).astype(bool)
+        if warped_mask.sum() < 0.05 * self.mask.sum():
+            return Registration(prior, 0.0, 0.0, 0.0)
+        residual = self.register(
+            earlier, self.prepare(warped, warped_mask), RelativePose(0.0, 0.0, 0.0), search_m
+        )
+        total = RelativePose.from_matrix(residual.relative.matrix() @ prior.matrix())
+        pixels = to_pixel @ total.matrix() @ to_metric
+        score, overlap = self.similarity(earlier.image, later_image, pixels)
+        return Registration(total, score, residual.peak, overlap)
 
     def _polar_spectrum(self, spectrum: npt.NDArray[np.complex64]) -> npt.NDArray[np.complex64]:
         magnitude = np.log1p(np.abs(spectrum)).astype(np.float32)
@@ -223,10 +261,15 @@ class FmtRegistrar:
         polar -= polar.mean(axis=1, keepdims=True)
         return scipy.fft.rfft(polar, axis=1, workers=1).astype(np.complex64)
 
-    def rotation(self, earlier: PreparedFrame, later: PreparedFrame) -> tuple[float, float]:
-        """Rotation (radians, image axes, counter-clockwise positive as seen on screen with
-        rows down) that takes the earlier frame's content to the later frame's, and the
-        normalised peak height."""
+    def rotation(
+        self, earlier: PreparedFrame, later: PreparedFrame, centre_rad: float = 0.0
+    ) -> tuple[float, float]:
+        """Yaw change (radians, clockwise positive) from the earlier frame to the later,
+        searched within ``max_rotation_deg`` of ``centre_rad``, and the normalised peak.
+
+        The magnitude spectrum repeats every half turn, so the answer is the one of the
+        two candidates half a turn apart that lies nearer ``centre_rad``.
+        """
         # Plain (not phase-only) correlation along the angle axis, summed over radii:
         # whitening the polar spectra would amplify the speckle's flat spectrum.
         cross = (earlier.polar_spectrum * np.conj(later.polar_spectrum)).sum(axis=0)
@@ -234,17 +277,18 @@ class FmtRegistrar:
         line /= max(float(np.sqrt(self._energy(earlier) * self._energy(later))), 1e-12)
         n_angles = self.params.n_angles
         limit = math.ceil(math.radians(self.params.max_rotation_deg) / self._angle_step)
-        candidates = np.r_[0 : limit + 1, n_angles - limit : n_angles]
+        centre = round(centre_rad / self._angle_step)
+        candidates = np.arange(centre - limit, centre + limit + 1) % n_angles
         best = int(candidates[np.argmax(line[candidates])])
         offset = _parabolic_offset(
             float(line[(best - 1) % n_angles]),
             float(line[best]),
             float(line[(best + 1) % n_angles]),
         )
-        shift = best + offset
-        if shift > n_angles / 2:
-            shift -= n_angles
-        return shift * self._angle_step, float(line[best])
+        angle = (best + offset) * self._angle_step
+        # Nearest to the centre among angle + k * pi.
+        angle += math.pi * round((centre_rad - angle) / math.pi)
+        return angle, float(line[best])
 
     def _energy(self, frame: PreparedFrame) -> float:
         spectrum = frame.polar_spectrum
@@ -326,11 +370,13 @@ class FmtRegistrar:
         prior: the expected relative pose (e.g. from the EKF); with ``search_m`` the
         translation peak is searched only that far (metres) from the prior's prediction.
         """
-        angle, _ = self.rotation(earlier, later)
+        angle, _ = self.rotation(earlier, later, prior.yaw_rad if prior is not None else 0.0)
         # The spectra give the rotation to a fraction of a degree; the phase-correlation
         # peak, which sharpens as the de-rotation gets right, refines it (parabola
         # through the peak heights at three angles).
+        # cv2 turns images counter-clockwise on screen for a positive angle: the opposite.
         angle = -angle
+        centre = -prior.yaw_rad if prior is not None else 0.0
         search_px: float | None = None
         if prior is not None and search_m is not None:
             search_px = search_m / self.grid.res_m
@@ -354,7 +400,7 @@ class FmtRegistrar:
                 break
             # Hill-climb: the spectral estimate was more than a step off.
             direction = 1.0 if right > left else -1.0
-            if abs(angle + direction * step) > limit:
+            if abs(angle + direction * step - centre) > limit:
                 break
             angle += direction * step
             if direction > 0:

@@ -36,6 +36,14 @@ from mapping.frames import (
     relative_pose,
 )
 from mapping.geo import LocalFrame
+from mapping.loops import (
+    LoopParams,
+    LoopReport,
+    find_candidates,
+    optimise_with_closures,
+    register_candidates,
+    solve_with_closures,
+)
 from mapping.mosaic import SonarPose, TileGrid, TileMosaic
 from mapping.navigation import estimate_at, prepare_inputs
 from mapping.posegraph import Edge, OptimiserParams, optimise
@@ -72,6 +80,7 @@ class PipelineParams:
     tile_px: int = 256
     smooth_nav: bool = True
     subset_frames: int = 60
+    loops: LoopParams = field(default_factory=LoopParams)
     """two-stage: frames per subset (consecutive subsets overlap by half)."""
 
 
@@ -92,6 +101,8 @@ class SurveyResult:
     mosaic: TileMosaic
     edges: list[Edge]
     mount: SonarMount
+    closures: list[Edge] = field(default_factory=list)
+    loops: LoopReport = field(default_factory=LoopReport)
 
     @property
     def frames_read(self) -> int:
@@ -284,6 +295,24 @@ def map_survey(
     else:
         poses = _two_stage(accepted, edges, priors, params)
     clock.add("optimisation", t0)
+    loop_report = LoopReport()
+    closures: list[Edge] = []
+    if mode is Mode.SINGLE_STAGE and params.loops.enabled and registration.preprocessor:
+        t0 = time.perf_counter()
+        preprocessor = registration.preprocessor
+        lit = (preprocessor.min_range_m, preprocessor.fan.max_range_m)
+        bearings = preprocessor.fan.bearings_rad
+        half_fan = max(abs(bearings[0]), abs(bearings[-1]))
+        pairs = find_candidates(times, poses, accepted, mount, lit, half_fan, params.loops)
+        closer = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+        found = register_candidates(pings(), pairs, poses, closer, params.loops, loop_report)
+        t1 = clock.add("loop_closure", t0)
+
+        def solve(extra: Sequence[Edge]) -> Array:
+            return optimise_with_closures(priors, accepted, edges, extra, params.optimiser)
+
+        poses, closures = solve_with_closures(solve, found, params.loops, loop_report)
+        clock.add("optimisation", t1)
     mapped = accepted & np.all(np.isfinite(poses), axis=1)
 
     mosaic = TileMosaic(TileGrid(params.mosaic_res_m, params.tile_px), params.blend)
@@ -321,4 +350,6 @@ def map_survey(
         mosaic=mosaic,
         edges=edges,
         mount=mount,
+        closures=closures,
+        loops=loop_report,
     )

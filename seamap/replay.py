@@ -132,6 +132,7 @@ def replay(
             "mapped": result.frames_mapped,
             "rejected": dict(result.rejected),
             "registrations": len(result.edges),
+            "loop_closures": asdict(result.loops),
             "skipped_in_log": skipped,
         },
         "navigation": nav_info,

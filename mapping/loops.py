@@ -1,0 +1,259 @@
+"""Loop closures between overlapping frames of different lanes.
+
+The paper chains consecutive registrations only, so the relative placement of two lanes
+rests on the GPS, whose bias wanders by decimetres between passes: a quadrat seen from two
+lanes is drawn twice. Registering frames of adjacent lanes that see the same seabed (often
+from opposite headings) and adding them as local residuals, validated like the consecutive
+ones, ties the lanes together: the paper's natural next step, and standard pose-graph
+practice (e.g. Hurtós et al. 2015, doi:10.1002/rob.21516).
+
+Candidates come from the current pose estimate: frames at least ``min_gap_s`` apart whose
+footprint centres lie within ``max_distance_m``. Each is registered with the prior from
+that estimate (``FmtRegistrar.register_far``); a closure is kept when its similarity is
+high enough and, after re-solving, its residual is small (the re-solve is repeated after
+dropping outliers, so one bad closure cannot bend the map).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from mapping.frames import LocalRegistration, SonarMount, relative_pose
+from mapping.posegraph import Edge, OptimiserParams, optimise
+from mapping.samples import Ping
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class LoopParams:
+    enabled: bool = True
+    min_gap_s: float = 8.0
+    """Frames closer in time are left to the consecutive chain."""
+    min_overlap: float = 0.3
+    """Smallest share of the lit fan two frames must have in common."""
+    stride: int = 4
+    """At most one closure per this many frames of each pass over a place."""
+    search_m: float = 1.0
+    """Translation searched around the prior (the GPS's relative error between lanes)."""
+    tau_a_deg: float = 6.0
+    """Largest yaw disagreement with the prior."""
+    min_score: float = 0.08
+    max_residual_m: float = 0.12
+    """Closures whose residual after the solve exceeds this are dropped as outliers."""
+    weight: float = 1.0
+    """Multiplier of lambda for closure residuals."""
+
+
+@dataclass
+class LoopReport:
+    candidates: int = 0
+    registered: int = 0
+    rejected_score: int = 0
+    rejected_rotation: int = 0
+    rejected_outlier: int = 0
+    kept: int = 0
+
+
+def _fan_samples(lit_m: tuple[float, float], half_fan_rad: float) -> Array:
+    """Sample points spread over the lit part of a fan (forward, starboard metres)."""
+    ranges = np.linspace(lit_m[0], lit_m[1], 6)[1:-1]
+    bearings = np.linspace(-half_fan_rad, half_fan_rad, 9)[1:-1]
+    r, b = np.meshgrid(ranges, bearings)
+    return np.column_stack([(r * np.cos(b)).ravel(), (r * np.sin(b)).ravel()])
+
+
+def _to_world(sonar: Array, points: Array) -> Array:
+    """Sonar-frame points (m, 2) of each pose (n, 3) in world east/north: (n, m, 2)."""
+    s, c = np.sin(sonar[:, 2])[:, None], np.cos(sonar[:, 2])[:, None]
+    f, st = points[None, :, 0], points[None, :, 1]
+    return np.stack([sonar[:, 0:1] + f * s + st * c, sonar[:, 1:2] + f * c - st * s], axis=-1)
+
+
+def footprint_overlap(
+    sonar_a: Array, sonar_b: Array, lit_m: tuple[float, float], half_fan_rad: float
+) -> Array:
+    """Fraction of fan a's sample points that fall inside fan b, per pair of sonar poses
+    (n, 3) each (x, y, yaw): an estimate of how much seabed the two frames share."""
+    points = _fan_samples(lit_m, half_fan_rad)
+    world = _to_world(sonar_a, points)
+    dx = world[..., 0] - sonar_b[:, 0:1]
+    dy = world[..., 1] - sonar_b[:, 1:2]
+    s, c = np.sin(sonar_b[:, 2])[:, None], np.cos(sonar_b[:, 2])[:, None]
+    forward = dx * s + dy * c
+    starboard = dx * c - dy * s
+    rng = np.hypot(forward, starboard)
+    inside = (
+        (rng >= lit_m[0])
+        & (rng <= lit_m[1])
+        & (np.abs(np.arctan2(starboard, forward)) <= half_fan_rad)
+    )
+    return np.asarray(inside.mean(axis=1), np.float64)
+
+
+def find_candidates(
+    times: Array,
+    poses: Array,
+    mapped: npt.NDArray[np.bool_],
+    mount: SonarMount,
+    lit_m: tuple[float, float],
+    half_fan_rad: float,
+    params: LoopParams,
+) -> list[tuple[int, int]]:
+    """Pairs (i, j), i < j, of mapped frames at least ``min_gap_s`` apart whose fans share
+    at least ``min_overlap`` of their lit seabed; one pair, the best, per block of
+    ``stride`` frames on each side."""
+    index = np.flatnonzero(mapped & np.all(np.isfinite(poses), axis=1))
+    if index.size < 2:
+        return []
+    sonar = mount.sonar_pose(poses[index])
+    mid = 0.5 * (lit_m[0] + lit_m[1])
+    centres = np.column_stack(
+        [sonar[:, 0] + mid * np.sin(sonar[:, 2]), sonar[:, 1] + mid * np.cos(sonar[:, 2])]
+    )
+    reach = 2.0 * lit_m[1] * math.sin(min(half_fan_rad, math.pi / 2))
+    pairs = cKDTree(centres).query_pairs(reach, output_type="ndarray")
+    if pairs.size == 0:
+        return []
+    a, b = pairs.min(axis=1), pairs.max(axis=1)
+    far_in_time = times[index[b]] - times[index[a]] >= params.min_gap_s
+    a, b = a[far_in_time], b[far_in_time]
+    overlap = np.minimum(
+        footprint_overlap(sonar[a], sonar[b], lit_m, half_fan_rad),
+        footprint_overlap(sonar[b], sonar[a], lit_m, half_fan_rad),
+    )
+    good = overlap >= params.min_overlap
+    best: dict[tuple[int, int], tuple[float, int, int]] = {}
+    for ia, ib, share in zip(a[good], b[good], overlap[good], strict=True):
+        i, j = int(index[ia]), int(index[ib])
+        key = (i // params.stride, j // params.stride)
+        if key not in best or share > best[key][0]:
+            best[key] = (float(share), i, j)
+    chosen = sorted((i, j) for _, i, j in best.values())
+    # Adjacent j-blocks of one i-block see nearly the same thing: keep one per i-block and
+    # pass (a pass being a run of j's without a gap of min_gap_s).
+    thinned: list[tuple[int, int]] = []
+    for i, j in chosen:
+        same_block = thinned and thinned[-1][0] // params.stride == i // params.stride
+        if same_block and abs(times[j] - times[thinned[-1][1]]) < params.min_gap_s:
+            continue
+        thinned.append((i, j))
+    return thinned
+
+
+def register_candidates(
+    pings: Iterable[Ping],
+    pairs: Sequence[tuple[int, int]],
+    poses: Array,
+    local: LocalRegistration,
+    params: LoopParams,
+    report: LoopReport,
+) -> list[Edge]:
+    """One pass over the pings: keep each earlier frame of a pair until its partner comes."""
+    if not pairs:
+        return []
+    mount = local.mount
+    partners: dict[int, list[int]] = {}
+    for i, j in pairs:
+        partners.setdefault(j, []).append(i)
+    wanted = {i for i, _ in pairs}
+    last_use: dict[int, int] = {}
+    for i, j in pairs:
+        last_use[i] = max(last_use.get(i, -1), j)
+    held: dict[int, npt.NDArray[np.float32]] = {}
+    sonar = mount.sonar_pose(poses)
+    edges: list[Edge] = []
+    for index, ping in enumerate(pings):
+        if index not in wanted and index not in partners:
+            continue
+        image = local.frame(ping).image
+        if index in wanted:
+            held[index] = image
+        registrar = local.registrar
+        assert registrar is not None
+        for i in partners.get(index, []):
+            earlier = held.get(i)
+            if earlier is None:
+                continue
+            report.candidates += 1
+            prior = relative_pose(sonar[i], sonar[index])
+            reg = registrar.register_far(registrar.prepare(earlier), image, prior, params.search_m)
+            report.registered += 1
+            yaw_off = math.degrees(
+                (reg.relative.yaw_rad - prior.yaw_rad + math.pi) % (2 * math.pi) - math.pi
+            )
+            if reg.score < params.min_score:
+                report.rejected_score += 1
+                continue
+            if abs(yaw_off) > params.tau_a_deg:
+                report.rejected_rotation += 1
+                continue
+            vehicle = mount.vehicle_relative(reg.relative)
+            edges.append(
+                Edge(
+                    i, index, vehicle.forward_m, vehicle.starboard_m, vehicle.yaw_rad, params.weight
+                )
+            )
+        for i in [k for k in held if last_use.get(k, -1) <= index]:
+            del held[i]
+    return edges
+
+
+def solve_with_closures(
+    solve: Callable[[Sequence[Edge]], Array],
+    closures: Sequence[Edge],
+    params: LoopParams,
+    report: LoopReport,
+) -> tuple[Array, list[Edge]]:
+    """Re-solve with the closures, dropping those that disagree with the solution (the
+    worst first, a few at a time) until all fit within ``max_residual_m``."""
+    kept = list(closures)
+    poses = solve(kept)
+    for _ in range(10):
+        if not kept:
+            break
+        residuals = np.array([_residual(poses, e) for e in kept])
+        bad = residuals > params.max_residual_m
+        if not bad.any():
+            break
+        # Drop the worst half of the offenders: an outlier drags its neighbours' residuals
+        # up too, and they come back clean once it is gone.
+        order = np.argsort(-residuals)
+        drop = set(order[: max(1, int(bad.sum() + 1) // 2)].tolist())
+        report.rejected_outlier += len(drop)
+        kept = [e for k, e in enumerate(kept) if k not in drop]
+        poses = solve(kept)
+    report.kept = len(kept)
+    return poses, kept
+
+
+def _residual(poses: Array, edge: Edge) -> float:
+    rel = relative_pose(poses[edge.i], poses[edge.j])
+    return math.hypot(rel.forward_m - edge.forward_m, rel.starboard_m - edge.starboard_m)
+
+
+def optimise_with_closures(
+    priors: Array,
+    mapped: npt.NDArray[np.bool_],
+    edges: Sequence[Edge],
+    closures: Sequence[Edge],
+    params: OptimiserParams,
+) -> Array:
+    """The single-stage optimisation over mapped frames with extra closure edges."""
+    index = np.flatnonzero(mapped)
+    position = {int(k): i for i, k in enumerate(index)}
+    local = [
+        Edge(position[e.i], position[e.j], e.forward_m, e.starboard_m, e.yaw_rad, e.weight)
+        for e in list(edges) + list(closures)
+        if e.i in position and e.j in position
+    ]
+    solution = optimise(priors[index], priors[index], local, params)
+    poses = np.full_like(priors, np.nan)
+    poses[index] = solution.poses
+    return poses
