@@ -147,6 +147,18 @@ class TopNStack:
         return robust_blend(self.intensity, self.score, params)
 
 
+def masked_median(values: FloatImage, keep: npt.NDArray[np.bool_]) -> FloatImage:
+    """Median over the last axis of the kept values (0 where none is kept)."""
+    ordered = np.sort(np.where(keep, values, np.inf), axis=-1)
+    count = keep.sum(axis=-1)
+    low = np.clip((count - 1) // 2, 0, None)[..., None]
+    high = np.clip(count // 2, 0, None)[..., None]
+    a = np.take_along_axis(ordered, low, axis=-1)[..., 0]
+    b = np.take_along_axis(ordered, np.minimum(high, values.shape[-1] - 1), axis=-1)[..., 0]
+    median = 0.5 * (a + b)
+    return np.where(count > 0, median, 0.0).astype(np.float32)
+
+
 def robust_blend(
     intensity: FloatImage, score: FloatImage, params: BlendParams
 ) -> tuple[FloatImage, npt.NDArray[np.bool_]]:
@@ -160,11 +172,9 @@ def robust_blend(
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(order.shape[-1]), axis=-1)
         keep &= rank < params.top_n
-    values = np.where(keep, intensity, np.nan)
-    with np.errstate(all="ignore"):
-        median = np.nanmedian(values, axis=-1, keepdims=True)
-        deviation = np.abs(values - median)
-        mad = np.nanmedian(deviation, axis=-1, keepdims=True)
+    median = masked_median(intensity, keep)
+    deviation = np.abs(intensity - median[..., None])
+    mad = masked_median(deviation, keep)[..., None]
     # With MAD = 0 (identical values, or a single candidate) nothing is an outlier.
     trimmed = keep & ((deviation <= params.eta * mad) | (mad <= 1e-6))
     weight = np.where(trimmed, score, 0.0) ** params.gamma

@@ -47,8 +47,12 @@ class LoopParams:
     min_score: float = 0.08
     max_residual_m: float = 0.12
     """Closures whose residual after the solve exceeds this are dropped as outliers."""
-    weight: float = 1.0
-    """Multiplier of lambda for closure residuals."""
+    weight: float = 0.1
+    """Multiplier of lambda for closure residuals. Two frames of different lanes see the
+    seabed from different sides (often opposite): shadows and the bright faces of ripples
+    and bars move with the look direction, so such a registration is an order of
+    magnitude less precise than one between consecutive frames (centimetres against
+    millimetres); it still pins the lanes to each other far better than the GPS does."""
 
 
 @dataclass

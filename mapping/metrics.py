@@ -107,22 +107,98 @@ def absolute_trajectory_error(estimate: Array, truth: Array) -> dict[str, float]
 
 @dataclass(frozen=True, slots=True)
 class Quadrat:
-    """A square frame on the seabed: centre (UTM metres) and side (metres)."""
+    """A square frame on the seabed: centre (UTM metres), side (metres, between the bar
+    centre lines), orientation of one side (radians clockwise from grid north)."""
 
     east: float
     north: float
     side_m: float
     row: int
     index: int
+    orientation_rad: float = 0.0
 
 
-def _frame_template(side_px: float, bar_px: float) -> npt.NDArray[np.float32]:
-    size = math.ceil(side_px + 4 * bar_px) | 1
+def _frame_template(side_px: float, bar_px: float, angle_rad: float) -> npt.NDArray[np.float32]:
+    """A bright square outline, rotated, zero-mean (for normalised matching)."""
+    size = math.ceil((side_px + 4 * bar_px) * 1.45) | 1
     c = (size - 1) / 2.0
-    yy, xx = np.mgrid[0:size, 0:size]
-    d = np.maximum(np.abs(xx - c), np.abs(yy - c))
-    template = (np.abs(d - side_px / 2.0) <= bar_px / 2.0).astype(np.float32)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    # Offsets along the side's bearing, image vector (sin b, -cos b) as y points south,
+    # and across it, (cos b, sin b).
+    sb, cb = math.sin(angle_rad), math.cos(angle_rad)
+    u = (xx - c) * sb - (yy - c) * cb
+    v = (xx - c) * cb + (yy - c) * sb
+    d = np.maximum(np.abs(u), np.abs(v))
+    template = np.clip(bar_px / 2.0 + 0.5 - np.abs(d - side_px / 2.0), 0.0, 1.0).astype(np.float32)
     return template - template.mean()
+
+
+def _filled(mosaic: Array, covered: Mask) -> npt.NDArray[np.float32]:
+    """The mosaic with no-data pixels set to its mean (so they match nothing)."""
+    values = mosaic[covered]
+    fill = float(values.mean()) if values.size else 0.0
+    return np.where(covered, mosaic, fill).astype(np.float32)
+
+
+def _peak(response: npt.NDArray[np.float32]) -> tuple[float, float, float]:
+    """Sub-pixel (x, y) of the maximum of a match response, and its value."""
+    _, score, _, (px, py) = cv2.minMaxLoc(response)
+
+    def refine(line: Array, k: int) -> float:
+        if 0 < k < line.size - 1:
+            den = line[k - 1] - 2 * line[k] + line[k + 1]
+            if den < 0:
+                return float(k + 0.5 * (line[k - 1] - line[k + 1]) / den)
+        return float(k)
+
+    return (
+        refine(response[py, :].astype(float), px),
+        refine(response[:, px].astype(float), py),
+        float(score),
+    )
+
+
+def layout_offset(
+    image: npt.NDArray[np.float32],
+    west: float,
+    north: float,
+    res_m: float,
+    quadrats: Sequence[Quadrat],
+    search_m: float,
+    bar_m: float,
+) -> tuple[float, float] | None:
+    """Where the whole quadrat layout lies in the mosaic relative to the truth (east,
+    north metres): the rigid pattern of all frames matched at once, which cannot confuse
+    one frame with its neighbour however far the georeferencing is off."""
+    margin = 0.5
+    e0 = min(q.east for q in quadrats) - margin - max(q.side_m for q in quadrats)
+    n1 = max(q.north for q in quadrats) + margin + max(q.side_m for q in quadrats)
+    e1 = max(q.east for q in quadrats) + margin + max(q.side_m for q in quadrats)
+    n0 = min(q.north for q in quadrats) - margin - max(q.side_m for q in quadrats)
+    width, height = round((e1 - e0) / res_m), round((n1 - n0) / res_m)
+    pattern = np.zeros((height, width), np.float32)
+    for q in quadrats:
+        t = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
+        t = t - t.min()
+        x = round((q.east - e0) / res_m) - t.shape[1] // 2
+        y = round((n1 - q.north) / res_m) - t.shape[0] // 2
+        xs, ys = (
+            slice(max(x, 0), min(x + t.shape[1], width)),
+            slice(max(y, 0), min(y + t.shape[0], height)),
+        )
+        pattern[ys, xs] = np.maximum(
+            pattern[ys, xs], t[ys.start - y : ys.stop - y, xs.start - x : xs.stop - x]
+        )
+    pattern -= pattern.mean()
+    pad = round(search_m / res_m)
+    x0 = round((e0 - west) / res_m) - pad
+    y0 = round((north - n1) / res_m) - pad
+    x1, y1 = x0 + width + 2 * pad, y0 + height + 2 * pad
+    if x0 < 0 or y0 < 0 or x1 > image.shape[1] or y1 > image.shape[0]:
+        return None
+    response = cv2.matchTemplate(image[y0:y1, x0:x1], pattern, cv2.TM_CCOEFF_NORMED)
+    px, py, _ = _peak(response)
+    return ((px - pad) * res_m, -(py - pad) * res_m)
 
 
 def locate_quadrats(
@@ -132,44 +208,38 @@ def locate_quadrats(
     north: float,
     res_m: float,
     quadrats: Sequence[Quadrat],
-    search_m: float = 0.6,
+    layout_search_m: float = 2.0,
+    search_m: float = 0.3,
     bar_m: float = 0.04,
 ) -> list[tuple[float, float, float] | None]:
-    """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north) by
-    normalised template matching of a square frame of its side within ``search_m`` of
-    where the truth puts it. Returns (east, north, match score) or None per quadrat."""
+    """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north): first
+    the whole layout within ``layout_search_m`` of the truth (the georeferencing error),
+    then each frame by normalised template matching of a square outline of its side and
+    orientation within ``search_m`` of there (less than half the 1 m spacing, so a match
+    cannot jump to a neighbour). Returns (east, north, match score) or None per quadrat."""
+    image = _filled(mosaic, covered)
+    offset = layout_offset(image, west, north, res_m, quadrats, layout_search_m, bar_m)
+    if offset is None:
+        offset = (0.0, 0.0)
     found: list[tuple[float, float, float] | None] = []
-    image = np.where(covered, mosaic, np.nan).astype(np.float32)
-    fill = float(np.nanmean(image)) if np.isfinite(image).any() else 0.0
-    image = np.nan_to_num(image, nan=fill)
     for q in quadrats:
-        template = _frame_template(q.side_m / res_m, bar_m / res_m)
-        half = template.shape[0] // 2 + int(search_m / res_m)
-        cx = (q.east - west) / res_m - 0.5
-        cy = (north - q.north) / res_m - 0.5
+        template = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
+        half = template.shape[0] // 2 + round(search_m / res_m)
+        cx = (q.east + offset[0] - west) / res_m - 0.5
+        cy = (north - q.north - offset[1]) / res_m - 0.5
         x0, y0 = round(cx) - half, round(cy) - half
         x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
         if x0 < 0 or y0 < 0 or x1 > image.shape[1] or y1 > image.shape[0]:
             found.append(None)
             continue
-        window = image[y0:y1, x0:x1]
         if covered[y0:y1, x0:x1].mean() < 0.5:
             found.append(None)
             continue
-        response = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)
-        _, score, _, (px, py) = cv2.minMaxLoc(response)
-
-        # Sub-pixel peak by parabola in each axis.
-        def refine(line: Array, k: int) -> float:
-            if 0 < k < line.size - 1:
-                den = line[k - 1] - 2 * line[k] + line[k + 1]
-                if den < 0:
-                    return float(k + 0.5 * (line[k - 1] - line[k + 1]) / den)
-            return float(k)
-
-        fx = refine(response[py, :].astype(float), px) + template.shape[1] // 2 + x0
-        fy = refine(response[:, px].astype(float), py) + template.shape[0] // 2 + y0
-        found.append((west + (fx + 0.5) * res_m, north - (fy + 0.5) * res_m, float(score)))
+        response = cv2.matchTemplate(image[y0:y1, x0:x1], template, cv2.TM_CCOEFF_NORMED)
+        px, py, score = _peak(response)
+        fx = px + template.shape[1] // 2 + x0
+        fy = py + template.shape[0] // 2 + y0
+        found.append((west + (fx + 0.5) * res_m, north - (fy + 0.5) * res_m, score))
     return found
 
 
@@ -209,32 +279,44 @@ def displacement_field(
     min_coverage: float = 0.9,
     min_peak: float = 0.08,
 ) -> dict[str, float]:
-    """How far the mosaic is from the true seabed: in patches where both have data, the
-    shift (metres... in pixels here; multiply by the resolution) that phase correlation
-    finds between mosaic and truth. Returns mean / RMS / max shift in pixels and the
-    number of patches measured. Both images on the same grid."""
+    """How far the mosaic is from the true seabed (both on one grid, pixels): in patches
+    where both have texture, the shift phase correlation finds between them.
+
+    ``offset_px``: length of the mean shift (the georeferencing error, GPS-limited);
+    ``distortion_rms_px``: RMS of the shifts about their mean (the mosaic's internal
+    geometry: lanes that disagree, drift, warping); ``rms_px``/``max_px`` of the raw
+    shifts; ``patches`` measured.
+    """
     shifts = []
-    win = cv2.createHanningWindow((patch_px, patch_px), cv2.CV_32F)
+    window = cv2.createHanningWindow((patch_px, patch_px), cv2.CV_32F)
     rows, cols = mosaic.shape
     for y in range(0, rows - patch_px + 1, patch_px // 2):
         for x in range(0, cols - patch_px + 1, patch_px // 2):
-            cov = covered[y : y + patch_px, x : x + patch_px]
-            if cov.mean() < min_coverage:
+            if covered[y : y + patch_px, x : x + patch_px].mean() < min_coverage:
                 continue
             a = mosaic[y : y + patch_px, x : x + patch_px].astype(np.float32)
             b = truth[y : y + patch_px, x : x + patch_px].astype(np.float32)
             if a.std() < 1e-3 or b.std() < 1e-3:
                 continue
-            (dx, dy), peak = cv2.phaseCorrelate(b - b.mean(), a - a.mean(), win)
-            if peak < min_peak:
-                continue
-            shifts.append(math.hypot(dx, dy))
+            (dx, dy), peak = cv2.phaseCorrelate(b - b.mean(), a - a.mean(), window)
+            if peak >= min_peak:
+                shifts.append((dx, dy))
     if not shifts:
-        return {"mean_px": math.nan, "rms_px": math.nan, "max_px": math.nan, "patches": 0.0}
-    s = np.array(shifts)
+        nan = math.nan
+        return {
+            "offset_px": nan,
+            "distortion_rms_px": nan,
+            "rms_px": nan,
+            "max_px": nan,
+            "patches": 0.0,
+        }
+    v = np.array(shifts)
+    mean = v.mean(axis=0)
+    length = np.linalg.norm(v, axis=1)
     return {
-        "mean_px": float(s.mean()),
-        "rms_px": float(math.sqrt(float(np.mean(s**2)))),
-        "max_px": float(s.max()),
-        "patches": float(s.size),
+        "offset_px": float(np.linalg.norm(mean)),
+        "distortion_rms_px": float(math.sqrt(float(np.mean(np.sum((v - mean) ** 2, axis=1))))),
+        "rms_px": float(math.sqrt(float(np.mean(length**2)))),
+        "max_px": float(length.max()),
+        "patches": float(len(shifts)),
     }

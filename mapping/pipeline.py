@@ -143,24 +143,10 @@ def _chain(n: int, accepted: npt.NDArray[np.bool_], edges: Sequence[Edge], prior
     return poses
 
 
-def _optimise_frames(
-    accepted: npt.NDArray[np.bool_], edges: Sequence[Edge], priors: Array, params: OptimiserParams
-) -> Array:
-    index = np.flatnonzero(accepted)
-    position = {int(k): i for i, k in enumerate(index)}
-    local = [
-        Edge(position[e.i], position[e.j], e.forward_m, e.starboard_m, e.yaw_rad, e.weight)
-        for e in edges
-    ]
-    solution = optimise(priors[index], priors[index], local, params)
-    poses = np.full_like(priors, np.nan)
-    poses[index] = solution.poses
-    return poses
-
-
 def _two_stage(
     accepted: npt.NDArray[np.bool_],
     edges: Sequence[Edge],
+    closures: Sequence[Edge],
     priors: Array,
     params: PipelineParams,
 ) -> Array:
@@ -194,6 +180,26 @@ def _two_stage(
         between = RelativePose.from_matrix(in_a.matrix() @ np.linalg.inv(in_b.matrix()))
         submap_edges.append(
             Edge(s, s + 1, between.forward_m, between.starboard_m, between.yaw_rad, shared.size)
+        )
+    # A loop closure between frames of two submaps ties the submaps the same way.
+    home = {}
+    for s in range(len(subsets) - 1, -1, -1):
+        for position, k in enumerate(subsets[s]):
+            home[int(k)] = (s, position)
+    for closure in closures:
+        if closure.i not in home or closure.j not in home:
+            continue
+        (sa, pa), (sb, pb) = home[closure.i], home[closure.j]
+        if sa == sb:
+            continue
+        link = RelativePose(closure.forward_m, closure.starboard_m, closure.yaw_rad)
+        between = RelativePose.from_matrix(
+            _as_relative(offsets[sa][pa]).matrix()
+            @ link.matrix()
+            @ np.linalg.inv(_as_relative(offsets[sb][pb]).matrix())
+        )
+        submap_edges.append(
+            Edge(sa, sb, between.forward_m, between.starboard_m, between.yaw_rad, closure.weight)
         )
     weights = np.array([[sub.size, sub.size] for sub in subsets], float)
     solution = optimise(submap_priors, submap_priors, submap_edges, params.optimiser, weights)
@@ -231,6 +237,62 @@ def _fit_rigid(offsets: Array, targets: Array) -> Array:
     anchor_xy = np.array([[c, -s], [s, c]]) @ (-src_c) + dst_c
     # A counter-clockwise turn of the east-north axes lowers a clockwise heading.
     return np.array([anchor_xy[0], anchor_xy[1], (-theta) % (2 * math.pi)])
+
+
+def _place_frames(
+    mode: Mode,
+    accepted: npt.NDArray[np.bool_],
+    edges: Sequence[Edge],
+    closures: Sequence[Edge],
+    priors: Array,
+    params: PipelineParams,
+) -> Array:
+    """Vehicle poses of the accepted frames by ``mode`` (NaN for the others)."""
+    if mode is Mode.GPS_ONLY:
+        return np.where(accepted[:, None], priors, np.nan)
+    if mode is Mode.FMT_ONLY:
+        return _chain(len(priors), accepted, edges, priors)
+    if mode is Mode.SINGLE_STAGE:
+        return optimise_with_closures(priors, accepted, edges, closures, params.optimiser)
+    return _two_stage(accepted, edges, closures, priors, params)
+
+
+def blend_frames(
+    pings: Iterable[Ping],
+    poses: Array,
+    mapped: npt.NDArray[np.bool_],
+    mount: SonarMount,
+    frame: LocalFrame,
+    params: PipelineParams,
+    clock: _Clock | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> TileMosaic:
+    """Warp every mapped frame to its pose and blend it into the tile mosaic (Algorithm 1,
+    lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates."""
+    clock = clock or _Clock()
+    mosaic = TileMosaic(TileGrid(params.mosaic_res_m, params.tile_px), params.blend)
+    scorer = FeatureScorer(params.blend)
+    preprocessing = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+    sonar_poses = mount.sonar_pose(poses)
+    n = len(mapped)
+    for index, ping in enumerate(pings):
+        if index >= n:
+            break
+        if not mapped[index]:
+            continue
+        t0 = time.perf_counter()
+        sonar_frame = preprocessing.frame(ping)
+        t1 = clock.add("preprocess", t0)
+        preprocessor = preprocessing.preprocessor
+        assert preprocessor is not None and preprocessor.grid is not None
+        score = scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
+        east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
+        pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
+        mosaic.add_frame(sonar_frame.image, score, sonar_frame.mask, preprocessor.grid, pose)
+        clock.add("blending", t1)
+        if progress is not None:
+            progress("blending", index + 1, n)
+    return mosaic
 
 
 def map_survey(
@@ -286,18 +348,16 @@ def map_survey(
     rejected = Counter(o.reason for o in outcomes if not o.accepted)
 
     t0 = time.perf_counter()
-    if mode is Mode.GPS_ONLY:
-        poses = np.where(accepted[:, None], priors, np.nan)
-    elif mode is Mode.FMT_ONLY:
-        poses = _chain(n, accepted, edges, priors)
-    elif mode is Mode.SINGLE_STAGE:
-        poses = _optimise_frames(accepted, edges, priors, params.optimiser)
-    else:
-        poses = _two_stage(accepted, edges, priors, params)
+
+    def solve(closures: Sequence[Edge]) -> Array:
+        return _place_frames(mode, accepted, edges, closures, priors, params)
+
+    poses = solve([])
     clock.add("optimisation", t0)
     loop_report = LoopReport()
     closures: list[Edge] = []
-    if mode is Mode.SINGLE_STAGE and params.loops.enabled and registration.preprocessor:
+    uses_closures = mode in (Mode.SINGLE_STAGE, Mode.TWO_STAGE) and params.loops.enabled
+    if uses_closures and registration.preprocessor is not None:
         t0 = time.perf_counter()
         preprocessor = registration.preprocessor
         lit = (preprocessor.min_range_m, preprocessor.fan.max_range_m)
@@ -307,36 +367,11 @@ def map_survey(
         closer = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
         found = register_candidates(pings(), pairs, poses, closer, params.loops, loop_report)
         t1 = clock.add("loop_closure", t0)
-
-        def solve(extra: Sequence[Edge]) -> Array:
-            return optimise_with_closures(priors, accepted, edges, extra, params.optimiser)
-
         poses, closures = solve_with_closures(solve, found, params.loops, loop_report)
         clock.add("optimisation", t1)
     mapped = accepted & np.all(np.isfinite(poses), axis=1)
 
-    mosaic = TileMosaic(TileGrid(params.mosaic_res_m, params.tile_px), params.blend)
-    scorer = FeatureScorer(params.blend)
-    blender = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
-    sonar_poses = mount.sonar_pose(poses)
-    for index, ping in enumerate(pings()):
-        if index >= n:
-            break
-        if not mapped[index]:
-            continue
-        t0 = time.perf_counter()
-        sonar_frame = blender.frame(ping)
-        t1 = clock.add("preprocess", t0)
-        assert blender.preprocessor is not None and blender.preprocessor.grid is not None
-        score = scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
-        east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
-        pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
-        mosaic.add_frame(
-            sonar_frame.image, score, sonar_frame.mask, blender.preprocessor.grid, pose
-        )
-        clock.add("blending", t1)
-        if progress is not None:
-            progress("blending", index + 1, n)
+    mosaic = blend_frames(pings(), poses, mapped, mount, frame, params, clock, progress)
     return SurveyResult(
         frame=frame,
         mode=mode,

@@ -64,10 +64,16 @@ def truth_poses(truth: dict[str, Any], times: Array) -> Array:
 
 
 def quadrats_of(truth: dict[str, Any]) -> list[Quadrat]:
-    return [
-        Quadrat(q["centre_east"], q["centre_north"], q["side_m"], q["row"], q["index"])
-        for q in truth.get("features", {}).get("quadrats", [])
-    ]
+    out = []
+    for q in truth.get("features", {}).get("quadrats", []):
+        (e0, n0), (e1, n1) = q["corners"][0], q["corners"][1]
+        side_bearing = math.atan2(e1 - e0, n1 - n0)
+        out.append(
+            Quadrat(
+                q["centre_east"], q["centre_north"], q["side_m"], q["row"], q["index"], side_bearing
+            )
+        )
+    return out
 
 
 def seabed_on_grid(
@@ -151,7 +157,8 @@ def evaluate(
     if seabed is not None:
         field = displacement_field(image, covered, seabed)
         report["mosaic_vs_seabed"] = {
-            "mean_m": field["mean_px"] * res_m,
+            "offset_m": field["offset_px"] * res_m,
+            "distortion_rms_m": field["distortion_rms_px"] * res_m,
             "rms_m": field["rms_px"] * res_m,
             "max_m": field["max_px"] * res_m,
             "patches": field["patches"],

@@ -1,8 +1,9 @@
 """``seamap demo [--out DIR]``: the main job on one machine.
 
-For now (the mapping core and the live system come in later issues) the demo simulates
-the paper's quadrat survey and reads everything back through seamap's own readers:
-every ping and every navigation sample, and prints what it found.
+For now (the live system, its drivers and zenoh come in later issues) the demo simulates
+the paper's quadrat survey, tells what the recorded logs hold, maps them with the
+single-stage pipeline as ``seamap replay`` would, and scores the mosaic against the
+simulator's truth.
 """
 
 from __future__ import annotations
@@ -11,8 +12,6 @@ import argparse
 import time
 from pathlib import Path
 from typing import Any
-
-from seamap.config import load_config
 
 
 def register(subparsers: Any) -> None:
@@ -27,9 +26,9 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.mavlink import read_nav_log
-    from drivers.oculus.logfile import LogReadReport, iter_pings
     from seamap.commands.info import format_summary, summarize
+    from seamap.commands.replay import Progress
+    from seamap.replay import replay
     from tools.sim import simulate
 
     survey = args.out / "survey"
@@ -43,24 +42,36 @@ def run(args: argparse.Namespace) -> int:
     for name in ("sonar.oculus", "nav.tlog"):
         print(format_summary(survey / name, summarize(survey / name)))
 
-    print("[3/3] reading every ping and navigation sample back")
-    config = load_config(survey / "site.toml")
-    report = LogReadReport()
-    n_pings = 0
-    peak = 0
-    for ping in iter_pings(survey / "sonar.oculus", report):
-        n_pings += 1
-        peak = max(peak, int(ping.image.max()))
-    nav = read_nav_log(
-        survey / "nav.tlog",
-        heading_source=config.mavlink.heading_source,
-        imu_source=config.mavlink.imu_source,
-        declination_deg=config.mavlink.declination_deg,
-    )
-    print(f"      sonar: {n_pings} pings, {report.corrupt_pings} corrupt, brightest sample {peak}")
+    result = args.out / "result"
+    print(f"[3/3] mapping the survey (single-stage) into {result}")
+    progress = Progress()
+    try:
+        report = replay(
+            survey / "sonar.oculus",
+            survey / "nav.tlog",
+            survey / "site.toml",
+            "single-stage",
+            result,
+            truth=survey / "truth.json",
+            progress=progress,
+        )
+    finally:
+        progress.done()
+    frames = report["frames"]
+    timings = report["timings_s"]
     print(
-        f"      nav ({nav.autopilot}): {len(nav.imu)} IMU samples ({nav.imu_source}), "
-        f"{len(nav.gnss)} GNSS fixes, {len(nav.heading)} headings ({nav.heading_source})"
+        f"      {frames['mapped']} of {frames['read']} frames mapped in {timings['total']:.1f} s "
+        f"({1000 * timings['total'] / max(frames['read'], 1):.0f} ms a frame), "
+        f"{frames['loop_closures']['kept']} loop closures"
     )
+    accuracy = report["accuracy"]
+    trajectory = accuracy["trajectory"]
+    spacing = accuracy["quadrat_spacing"]
+    print(
+        f"      trajectory error {trajectory['rmse']:.2f} m (GPS-limited), "
+        f"{trajectory['aligned_rmse']:.3f} m in shape; quadrat spacing RMSE "
+        f"{spacing['rmse'] * 100:.1f} cm over {int(spacing['located'])} quadrats"
+    )
+    print(f"      mosaic: {result / 'mosaic.tif'} (and mosaic.png, trajectory.csv, report.json)")
     print(f"demo output in {args.out.resolve()}")
     return 0

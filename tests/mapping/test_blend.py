@@ -52,3 +52,16 @@ def test_stack_keeps_only_the_n_best_candidates() -> None:
         stack.add(np.full((1, 1), value, np.float32), np.full((1, 1), score, np.float32), mask)
     np.testing.assert_allclose(sorted(stack.score[0, 0].tolist()), [0.5, 0.7, 0.9], rtol=1e-6)
     assert stack.count[0, 0] == 5
+
+
+def test_masked_median_matches_numpy() -> None:
+    rng = np.random.default_rng(8)
+    values = rng.random((50, 40, 16)).astype(np.float32)
+    keep = rng.random((50, 40, 16)) < 0.6
+    keep[0, 0] = False
+    expected = np.nanmedian(np.where(keep[1:], values[1:], np.nan), axis=-1)
+    from mapping.blend import masked_median
+
+    got = masked_median(values, keep)
+    np.testing.assert_allclose(got[1:], expected, rtol=1e-6)
+    assert got[0, 0] == 0.0

@@ -1,0 +1,55 @@
+"""The paper's claim, on the simulated quadrat site: the single-stage fusion maps the
+quadrats more faithfully than the FMT-only baseline and than the GPS alone."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from seamap.replay import replay
+from tools.sim import simulate
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def accuracy(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+    survey = tmp_path_factory.mktemp("quadrats")
+    simulate("quadrats", 1, survey, n_beams=256)
+    out = {}
+    for mode in ("gps-only", "fmt-only", "single-stage"):
+        report = replay(
+            survey / "sonar.oculus",
+            survey / "nav.tlog",
+            survey / "site.toml",
+            mode,
+            survey / mode,
+            truth=survey / "truth.json",
+        )
+        out[mode] = report["accuracy"]
+    return out
+
+
+def test_single_stage_beats_both_baselines_on_quadrat_spacing(accuracy: dict[str, Any]) -> None:
+    spacing = {mode: a["quadrat_spacing"]["rmse"] for mode, a in accuracy.items()}
+    assert all(a["quadrat_spacing"]["located"] == 8 for a in accuracy.values())
+    assert spacing["single-stage"] < spacing["fmt-only"]
+    assert spacing["single-stage"] < spacing["gps-only"]
+    assert spacing["single-stage"] < 0.05
+
+
+def test_single_stage_beats_both_baselines_on_mosaic_geometry(accuracy: dict[str, Any]) -> None:
+    distortion = {mode: a["mosaic_vs_seabed"]["distortion_rms_m"] for mode, a in accuracy.items()}
+    assert distortion["single-stage"] < distortion["fmt-only"]
+    assert distortion["single-stage"] < distortion["gps-only"]
+
+
+def test_single_stage_trajectory_is_locally_as_good_as_the_registrations(
+    accuracy: dict[str, Any],
+) -> None:
+    single = accuracy["single-stage"]["trajectory"]
+    gps = accuracy["gps-only"]["trajectory"]
+    # Shape (after removing the GPS's common offset) far better than the GPS's.
+    assert single["aligned_rmse"] < 0.5 * gps["aligned_rmse"]
+    assert single["relative_rmse"] < 0.01
