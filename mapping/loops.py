@@ -248,6 +248,7 @@ def optimise_with_closures(
     edges: Sequence[Edge],
     closures: Sequence[Edge],
     params: OptimiserParams,
+    prior_weights: Array | None = None,
 ) -> Array:
     """The single-stage optimisation over mapped frames with extra closure edges."""
     index = np.flatnonzero(mapped)
@@ -257,7 +258,8 @@ def optimise_with_closures(
         for e in list(edges) + list(closures)
         if e.i in position and e.j in position
     ]
-    solution = optimise(priors[index], priors[index], local, params)
+    weights = None if prior_weights is None else prior_weights[index]
+    solution = optimise(priors[index], priors[index], local, params, weights)
     poses = np.full_like(priors, np.nan)
     poses[index] = solution.poses
     return poses

@@ -154,6 +154,22 @@ class NavEstimate:
         """(n, 3): x east (m), y north (m), heading (rad clockwise from grid north)."""
         return self.states[:, [0, 1, PSI]]
 
+    def prior_weights(self) -> Array:
+        """(n, 2) weights of each pose's position and heading prior in the optimisation:
+        1 where the filter is as sure as it usually is in this survey (the paper's unit
+        weight), less where it is less sure (a GPS outage dead-reckoned), as
+        (typical sigma / sigma)^2, capped at 1; 0 where there is no estimate."""
+        weights = np.zeros((self.times.size, 2))
+        if not self.valid.any():
+            return weights
+        cov = self.covariances[self.valid]
+        sigma_pos = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+        sigma_ang = np.sqrt(cov[:, PSI, PSI])
+        for column, sigma in enumerate((sigma_pos, sigma_ang)):
+            typical = float(np.median(sigma))
+            weights[self.valid, column] = np.minimum(1.0, (typical / np.maximum(sigma, 1e-9)) ** 2)
+        return weights
+
 
 _IMU, _POSITION, _HEADING, _QUERY = 0, 1, 2, 3
 

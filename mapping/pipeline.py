@@ -148,6 +148,7 @@ def _two_stage(
     edges: Sequence[Edge],
     closures: Sequence[Edge],
     priors: Array,
+    prior_weights: Array,
     params: PipelineParams,
 ) -> Array:
     """Stage 1: subsets of ``subset_frames`` accepted frames, consecutive subsets sharing
@@ -201,7 +202,7 @@ def _two_stage(
         submap_edges.append(
             Edge(sa, sb, between.forward_m, between.starboard_m, between.yaw_rad, closure.weight)
         )
-    weights = np.array([[sub.size, sub.size] for sub in subsets], float)
+    weights = np.array([prior_weights[sub].sum(axis=0) for sub in subsets], float)
     solution = optimise(submap_priors, submap_priors, submap_edges, params.optimiser, weights)
     poses = np.full_like(priors, np.nan)
     for s in range(len(subsets) - 1, -1, -1):
@@ -245,6 +246,7 @@ def _place_frames(
     edges: Sequence[Edge],
     closures: Sequence[Edge],
     priors: Array,
+    weights: Array,
     params: PipelineParams,
 ) -> Array:
     """Vehicle poses of the accepted frames by ``mode`` (NaN for the others)."""
@@ -253,8 +255,8 @@ def _place_frames(
     if mode is Mode.FMT_ONLY:
         return _chain(len(priors), accepted, edges, priors)
     if mode is Mode.SINGLE_STAGE:
-        return optimise_with_closures(priors, accepted, edges, closures, params.optimiser)
-    return _two_stage(accepted, edges, closures, priors, params)
+        return optimise_with_closures(priors, accepted, edges, closures, params.optimiser, weights)
+    return _two_stage(accepted, edges, closures, priors, weights, params)
 
 
 def blend_frames(
@@ -318,6 +320,7 @@ def map_survey(
     n = times.size
     estimate = estimate_at(inputs, times, params.ekf, smooth=params.smooth_nav)
     priors = estimate.poses
+    weights = estimate.prior_weights()
     started = clock.add("ekf", started)
 
     registration = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
@@ -350,7 +353,7 @@ def map_survey(
     t0 = time.perf_counter()
 
     def solve(closures: Sequence[Edge]) -> Array:
-        return _place_frames(mode, accepted, edges, closures, priors, params)
+        return _place_frames(mode, accepted, edges, closures, priors, weights, params)
 
     poses = solve([])
     clock.add("optimisation", t0)

@@ -77,17 +77,37 @@ class ZenohConfig:
 
 
 @dataclass(frozen=True)
+class MappingConfig:
+    mosaic_res_m: float = 0.02
+    """Mosaic pixel size (metres); tiles are 256 pixels square."""
+    lambda_local: float = 1e4
+    """The paper's lambda: weight of registrations against the EKF priors."""
+    alpha: float = 1.0 / 225.0
+    """The paper's alpha: weight of squared angle (degrees) against squared metres."""
+    tau_p_m: float = 0.15
+    """Largest disagreement between a registration and the EKF's relative motion (m)."""
+    tau_a_deg: float = 3.0
+    """Largest disagreement in relative yaw (degrees)."""
+    loop_closures: bool = True
+    """Register overlapping frames of different lanes and use them as constraints."""
+    blending: str = "robust"
+    """"robust" (the paper's variance-based blending) or "average"."""
+
+
+@dataclass(frozen=True)
 class SiteConfig:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sonar: SonarConfig = field(default_factory=SonarConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
 _CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("mavlink", "heading_source"): HEADING_SOURCES,
     ("mavlink", "imu_source"): IMU_SOURCES,
     ("zenoh", "mode"): ("peer", "client", "router"),
+    ("mapping", "blending"): ("robust", "average"),
 }
 
 
@@ -211,6 +231,7 @@ __all__ = [
     "HEADING_SOURCES",
     "IMU_SOURCES",
     "DaemonConfig",
+    "MappingConfig",
     "MavlinkConfig",
     "SiteConfig",
     "SonarConfig",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,20 @@ def mount_from_config(sonar: SonarConfig) -> SonarMount:
     )
 
 
+def pipeline_params(config: SiteConfig) -> PipelineParams:
+    """The pipeline's settings from the site config's [mapping] table."""
+    m = config.mapping
+    defaults = PipelineParams()
+    return replace(
+        defaults,
+        mosaic_res_m=m.mosaic_res_m,
+        optimiser=replace(defaults.optimiser, lam=m.lambda_local, alpha=m.alpha),
+        registration=replace(defaults.registration, tau_p_m=m.tau_p_m, tau_a_deg=m.tau_a_deg),
+        loops=replace(defaults.loops, enabled=m.loop_closures),
+        blend=replace(defaults.blend, method=m.blending),
+    )
+
+
 def read_navigation(path: Path, config: SiteConfig) -> tuple[NavSamples, dict[str, Any]]:
     from drivers.mavlink import read_nav_log
 
@@ -44,8 +58,18 @@ def read_navigation(path: Path, config: SiteConfig) -> tuple[NavSamples, dict[st
         imu_source=config.mavlink.imu_source,
         declination_deg=config.mavlink.declination_deg,
     )
+    if nav.report.time_reference == "boot":
+        raise SeamapError(
+            f"{path}: times are seconds since the autopilot booted (no GPS time in the log), "
+            "so they cannot be matched to the sonar's UNIX times"
+        )
+    if not any(f.usable for f in nav.gnss):
+        raise SeamapError(f"{path}: no usable GNSS fix in the log: frames cannot be placed")
     info = {
         "autopilot": nav.autopilot,
+        "time_reference": nav.report.time_reference,
+        "first_time": nav.report.first_time,
+        "last_time": nav.report.last_time,
         "heading_source": nav.heading_source,
         "imu_source": nav.imu_source,
         "imu_samples": len(nav.imu),
@@ -89,7 +113,7 @@ def replay(
     """Map the logs and write the result folder; returns the report."""
     started = time.perf_counter()
     config = load_config(config_path)
-    params = params or PipelineParams()
+    params = params or pipeline_params(config)
     samples, nav_info = read_navigation(nav, config)
     skipped: dict[str, int] = {}
     try:
@@ -105,6 +129,16 @@ def replay(
         raise SeamapError(f"{nav}: {exc}") from None
     if result.frames_read == 0:
         raise SeamapError(f"{sonar}: no sonar pings in the log")
+    if result.frames_mapped == 0:
+        first, last = float(result.times.min()), float(result.times.max())
+        nav_first = nav_info["first_time"] or 0.0
+        nav_last = nav_info["last_time"] or 0.0
+        raise SeamapError(
+            f"{sonar}: no frame could be placed: the pings ({first:.0f}..{last:.0f} s) and "
+            f"the navigation log ({nav_first:.0f}..{nav_last:.0f} s) do not overlap in time"
+            if not (nav_first <= last and first <= nav_last)
+            else f"{sonar}: no frame could be placed ({dict(result.rejected)})"
+        )
     t0 = time.perf_counter()
     image, west, north = render(result)
     render_s = time.perf_counter() - t0

@@ -120,3 +120,17 @@ def test_gps_outage_dead_reckons_and_grows_the_covariance() -> None:
     k = 78 * 55
     # 18 s of dead reckoning on IMU and compass stays within a few metres.
     assert np.linalg.norm(est.poses[1, :2] - truth[k, :2]) < 3.0
+
+
+def test_priors_weigh_less_where_the_filter_is_unsure() -> None:
+    frame, times, _truth, imu, gnss, headings, attitude = boat_run(3, gps_outage=(60.0, 80.0))
+    inputs = prepare_inputs(frame, imu, gnss, headings, attitude)
+    query = times[::55]  # once a second
+    est = estimate_at(inputs, query)
+    weights = est.prior_weights()
+    t = query - times[0]
+    inside = (t > 66) & (t < 74)
+    normal = (t > 20) & (t < 55)
+    assert weights[normal, 0].mean() > 0.8
+    assert weights[inside, 0].max() < 0.5 * weights[normal, 0].mean()
+    assert np.all((weights >= 0) & (weights <= 1))

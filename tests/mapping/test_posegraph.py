@@ -105,3 +105,32 @@ def test_compose_inverts_relative_pose() -> None:
     a = np.array([3.0, 4.0, 5.5])
     b = np.array([3.7, 3.1, 0.2])
     np.testing.assert_allclose(compose(a, relative_pose(a, b)), b, atol=1e-12)
+
+
+def test_sonar_mount_lever_arm_and_yaw() -> None:
+    from mapping.fmt import RelativePose
+    from mapping.frames import SonarMount
+
+    mount = SonarMount(forward_m=-0.45, starboard_m=0.2, yaw_rad=math.radians(30))
+    vehicle = np.array([100.0, 200.0, math.radians(90)])  # facing east
+    sonar = mount.sonar_pose(vehicle)
+    # 0.45 m behind (west) and 0.2 m to starboard (south) of the antenna, boresight 120 deg.
+    np.testing.assert_allclose(sonar[:2], [100.0 - 0.45, 200.0 - 0.2], atol=1e-12)
+    assert math.isclose(sonar[2], math.radians(120))
+    # A vehicle motion seen by the sonar and converted back is the same motion.
+    motion = RelativePose(0.3, -0.05, math.radians(2))
+    back = mount.vehicle_relative(mount.sonar_relative(motion))
+    np.testing.assert_allclose(
+        [back.forward_m, back.starboard_m, back.yaw_rad],
+        [motion.forward_m, motion.starboard_m, motion.yaw_rad],
+        atol=1e-12,
+    )
+    # And it agrees with the sonar poses before and after the motion.
+    after = compose(vehicle, motion)
+    seen = relative_pose(mount.sonar_pose(vehicle), mount.sonar_pose(after))
+    expected = mount.sonar_relative(motion)
+    np.testing.assert_allclose(
+        [seen.forward_m, seen.starboard_m, seen.yaw_rad],
+        [expected.forward_m, expected.starboard_m, expected.yaw_rad],
+        atol=1e-12,
+    )
