@@ -121,7 +121,7 @@ class PreparedFrame:
     """What registration keeps of one frame, computed once and reused for both pairs it
     belongs to (as the later frame, then as the earlier one)."""
 
-    windowed: FloatImage  # zero-mean, tapered, padded to (n, n)
+    windowed: FloatImage  # zero-mean, tapered, padded to the translation transform
     image: FloatImage  # unpadded, as given
     spectrum: npt.NDArray[np.complex64]  # rfft2 of windowed
     polar_spectrum: npt.NDArray[np.complex64]  # rfft2 of the log-polar log-magnitude
@@ -163,20 +163,29 @@ class FmtRegistrar:
         self.mask = mask.astype(bool)
         self.window = hamming_taper(self.mask, self.params.taper_px)
         rows, cols = grid.shape
-        # A square transform: rotating an image rotates its spectrum only when both
-        # frequency axes have the same scale.
+        # Rotation: a square transform, since rotating an image rotates its spectrum only
+        # when both frequency axes have the same scale.
         self.n = int(cv2.getOptimalDFTSize(max(rows, cols)))
         self.row0 = (self.n - rows) // 2
         self.col0 = (self.n - cols) // 2
-        self.centre = ((self.n - 1) / 2.0, (self.n - 1) / 2.0)  # (x, y) of padded image
         self._build_polar_maps()
-        fy = np.fft.fftfreq(self.n)[:, None]
-        fx = np.fft.rfftfreq(self.n)[None, :]
+        # Translation: a transform just larger than the frame (fans are twice as wide as
+        # deep, so this is half the square's work), with a margin for what a few degrees
+        # of de-rotation move past the frame's edge.
+        turn = math.sin(math.radians(self.params.max_rotation_deg))
+        margin = math.ceil(0.5 * max(rows, cols) * turn) + 4
+        self.shape_t = (
+            int(cv2.getOptimalDFTSize(rows + 2 * margin)),
+            int(cv2.getOptimalDFTSize(cols + 2 * margin)),
+        )
+        self.row0_t = (self.shape_t[0] - rows) // 2
+        self.col0_t = (self.shape_t[1] - cols) // 2
+        # (x, y) of the rotation centre in the translation transform's padded image.
+        self.centre = ((self.shape_t[1] - 1) / 2.0, (self.shape_t[0] - 1) / 2.0)
+        fy = np.fft.fftfreq(self.shape_t[0])[:, None]
+        fx = np.fft.rfftfreq(self.shape_t[1])[None, :]
         sigma = self.params.lowpass_sigma
         self._lowpass = np.exp(-(fx * fx + fy * fy) / (2 * sigma * sigma)).astype(np.float32)
-        padded_mask = np.zeros((self.n, self.n), np.float32)
-        padded_mask[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = self.window
-        self.padded_window = padded_mask
 
     def _build_polar_maps(self) -> None:
         p = self.params
@@ -213,15 +222,17 @@ class FmtRegistrar:
             window = hamming_taper(mask, self.params.taper_px)
         values = frame[mask]
         mean = float(values.mean()) if values.size else 0.0
-        padded = np.zeros((self.n, self.n), np.float32)
         rows, cols = self.grid.shape
-        padded[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = (frame - mean) * window
-        spectrum = scipy.fft.rfft2(padded, workers=1).astype(np.complex64)
+        windowed = (frame - mean) * window
+        square = np.zeros((self.n, self.n), np.float32)
+        square[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = windowed
+        padded = np.zeros(self.shape_t, np.float32)
+        padded[self.row0_t : self.row0_t + rows, self.col0_t : self.col0_t + cols] = windowed
         return PreparedFrame(
             windowed=padded,
             image=frame,
-            spectrum=spectrum,
-            polar_spectrum=self._polar_spectrum(spectrum),
+            spectrum=scipy.fft.rfft2(padded, workers=1).astype(np.complex64),
+            polar_spectrum=self._polar_spectrum(scipy.fft.rfft2(square, workers=1)),
         )
 
     def register_far(
@@ -252,7 +263,9 @@ class FmtRegistrar:
         score, overlap = self.similarity(earlier.image, later_image, pixels)
         return Registration(total, score, residual.peak, overlap)
 
-    def _polar_spectrum(self, spectrum: npt.NDArray[np.complex64]) -> npt.NDArray[np.complex64]:
+    def _polar_spectrum(
+        self, spectrum: npt.NDArray[np.complexfloating]
+    ) -> npt.NDArray[np.complex64]:
         magnitude = np.log1p(np.abs(spectrum)).astype(np.float32)
         magnitude = np.fft.fftshift(magnitude, axes=0)
         polar = cv2.remap(
@@ -299,7 +312,7 @@ class FmtRegistrar:
         return cv2.warpAffine(
             frame.windowed,
             matrix,
-            (self.n, self.n),
+            (self.shape_t[1], self.shape_t[0]),
             flags=cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0.0,
@@ -319,13 +332,13 @@ class FmtRegistrar:
         # Phase only, then a low-pass: speckle fills the high frequencies with noise that
         # whitening would weigh as much as the seabed's texture.
         cross *= self._lowpass / (np.abs(cross) + 1e-9)
-        surface = scipy.fft.irfft2(cross, s=(self.n, self.n))
-        n = self.n
+        height, width = self.shape_t
+        surface = scipy.fft.irfft2(cross, s=self.shape_t, workers=1)
         if expected_px is not None and search_px is not None:
             ex, ey = expected_px
             radius = math.ceil(search_px)
-            xs = np.arange(round(ex) - radius, round(ex) + radius + 1) % n
-            ys = np.arange(round(ey) - radius, round(ey) + radius + 1) % n
+            xs = np.arange(round(ex) - radius, round(ex) + radius + 1) % width
+            ys = np.arange(round(ey) - radius, round(ey) + radius + 1) % height
             window = surface[np.ix_(ys, xs)]
             iy, ix = np.unravel_index(int(np.argmax(window)), window.shape)
             py, px = int(ys[iy]), int(xs[ix])
@@ -333,23 +346,23 @@ class FmtRegistrar:
             py, px = (int(v) for v in np.unravel_index(int(np.argmax(surface)), surface.shape))
         peak = float(surface[py, px])
         dx = px + _parabolic_offset(
-            float(surface[py, (px - 1) % n]), peak, float(surface[py, (px + 1) % n])
+            float(surface[py, (px - 1) % width]), peak, float(surface[py, (px + 1) % width])
         )
         dy = py + _parabolic_offset(
-            float(surface[(py - 1) % n, px]), peak, float(surface[(py + 1) % n, px])
+            float(surface[(py - 1) % height, px]), peak, float(surface[(py + 1) % height, px])
         )
         # Shifts beyond half the transform wrap around to negative ones.
-        if dx > n / 2:
-            dx -= n
-        if dy > n / 2:
-            dy -= n
+        if dx > width / 2:
+            dx -= width
+        if dy > height / 2:
+            dy -= height
         return (float(dx), float(dy)), peak
 
     def _later_to_earlier_pixels(
         self, angle_rad: float, shift_px: tuple[float, float]
     ) -> npt.NDArray[np.float64]:
         """3x3 matrix taking unpadded later-frame pixel (col, row) to earlier-frame pixel."""
-        pad = np.array([[1.0, 0.0, self.col0], [0.0, 1.0, self.row0], [0.0, 0.0, 1.0]])
+        pad = np.array([[1.0, 0.0, self.col0_t], [0.0, 1.0, self.row0_t], [0.0, 0.0, 1.0]])
         rotate = np.vstack(
             [cv2.getRotationMatrix2D(self.centre, math.degrees(angle_rad), 1.0), [0, 0, 1]]
         )
@@ -431,7 +444,7 @@ class FmtRegistrar:
         """The phase-correlation shift that ``prior`` predicts, given the found rotation."""
         to_metric = self.grid.pixel_to_metric()
         pixels = np.linalg.inv(to_metric) @ prior.matrix() @ to_metric
-        pad = np.array([[1.0, 0.0, self.col0], [0.0, 1.0, self.row0], [0.0, 0.0, 1.0]])
+        pad = np.array([[1.0, 0.0, self.col0_t], [0.0, 1.0, self.row0_t], [0.0, 0.0, 1.0]])
         rotate = np.vstack(
             [cv2.getRotationMatrix2D(self.centre, math.degrees(angle_rad), 1.0), [0, 0, 1]]
         )

@@ -123,6 +123,7 @@ class LocalRegistration:
     def __post_init__(self) -> None:
         self.preprocessor: Preprocessor | None = None
         self.registrar: FmtRegistrar | None = None
+        self._fine: FmtRegistrar | None = None
         self._fan: FanGeometry | None = None
         self._last: tuple[int, float, Array, PreparedFrame] | None = None
 
@@ -140,12 +141,26 @@ class LocalRegistration:
             self.preprocessor = Preprocessor(
                 fan, math.degrees(self.mount.tilt_rad), self.preprocess, reference_cdf=reference
             )
-            grid = self.preprocessor.grid
-            assert grid is not None
-            self.registrar = FmtRegistrar(grid, self.preprocessor.tables.mask, self.fmt)
+            self.registrar = FmtRegistrar(
+                self.preprocessor.registration_grid,
+                self.preprocessor.registration_tables.mask,
+                self.fmt,
+            )
+            self._fine = None
             self._fan = fan
             self._last = None  # a new geometry cannot be registered against the old
         return self.preprocessor(ping.image)
+
+    @property
+    def fine_registrar(self) -> FmtRegistrar:
+        """A registrar on the blending grid, for the few registrations that need every
+        bit of detail (loop closures between lanes)."""
+        if self._fine is None:
+            assert self.preprocessor is not None and self.preprocessor.grid is not None
+            self._fine = FmtRegistrar(
+                self.preprocessor.grid, self.preprocessor.tables.mask, self.fmt
+            )
+        return self._fine
 
     def register(
         self, index: int, time: float, frame: SonarFrame, prior: Array | None
@@ -158,7 +173,7 @@ class LocalRegistration:
         if prior is None or not np.all(np.isfinite(prior)):
             return FrameOutcome(index, time, False, "no navigation prior")
         assert self.registrar is not None
-        prepared = self.registrar.prepare(frame.image)
+        prepared = self.registrar.prepare(frame.coarse)
         last = self._last
         if last is None or time - last[1] > self.params.max_gap_s:
             # The first frame, or a chain restart: kept on its prior alone.

@@ -179,8 +179,7 @@ def register_candidates(
         image = local.frame(ping).image
         if index in wanted:
             held[index] = image
-        registrar = local.registrar
-        assert registrar is not None
+        registrar = local.fine_registrar
         for i in partners.get(index, []):
             earlier = held.get(i)
             if earlier is None:

@@ -62,9 +62,9 @@ def preprocessing_table(survey: Path, every: int = 10) -> dict[str, dict[str, fl
             assert isinstance(registrar, FmtRegistrar)
             if index % every == 0:
                 rows.append(image_metrics(frame.image.astype(float), frame.mask))
-                previous = registrar.prepare(frame.image)
+                previous = registrar.prepare(frame.coarse)
             elif previous is not None:
-                scores.append(registrar.register(previous, registrar.prepare(frame.image)).score)
+                scores.append(registrar.register(previous, registrar.prepare(frame.coarse)).score)
         means = {key: float(np.mean([r[key] for r in rows])) for key in rows[0]}
         means["similarity"] = float(np.mean(scores)) if scores else float("nan")
         table[name] = means
