@@ -13,7 +13,7 @@ Hamming edge taper so fan edges fade out of the mosaic.
 Per mosaic pixel, over the frames that cover it: keep candidates with
 s >= rho * max s, at most the N best; trim intensities farther than eta * MAD from their
 median; output the s^gamma-weighted mean (Eq. 11). Only the N best candidates can ever be
-kept, so a pixel stores just those (``TopNStack``): memory is N slots a pixel however
+kept, so a pixel stores just those (``mapping.tiles``): memory is N slots a pixel however
 many frames pass over it, and frames can be added in any grouping, tile by tile.
 """
 
@@ -89,64 +89,6 @@ class FeatureScorer:
         return score.astype(np.float32)
 
 
-class TopNStack:
-    """Per-pixel store of the N highest-scoring (intensity, score) candidates.
-
-    Arrays are (rows, cols, N) float32; empty slots have score 0 (a real candidate has
-    score > 0). ``count`` counts every candidate ever offered, for plain averaging and
-    statistics; ``total`` sums their intensities.
-    """
-
-    def __init__(self, shape: tuple[int, int], n: int) -> None:
-        self.intensity = np.zeros((*shape, n), np.float32)
-        self.score = np.zeros((*shape, n), np.float32)
-        self.total = np.zeros(shape, np.float32)
-        self.count = np.zeros(shape, np.uint16)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        rows, cols = self.total.shape
-        return rows, cols
-
-    def add(
-        self,
-        intensity: FloatImage,
-        score: FloatImage,
-        valid: npt.NDArray[np.bool_],
-        rows: slice = slice(None),
-        cols: slice = slice(None),
-    ) -> None:
-        """Offer one frame's warped candidates for the sub-window (rows, cols)."""
-        stack_i = self.intensity[rows, cols]
-        stack_s = self.score[rows, cols]
-        valid = valid & (score > 0.0)
-        self.total[rows, cols] += np.where(valid, intensity, 0.0)
-        self.count[rows, cols] += valid
-        weakest = np.argmin(stack_s, axis=2)
-        weakest_score = np.take_along_axis(stack_s, weakest[..., None], axis=2)[..., 0]
-        replace = valid & (score > weakest_score)
-        if not replace.any():
-            return
-        r, c = np.nonzero(replace)
-        k = weakest[r, c]
-        stack_i[r, c, k] = intensity[r, c]
-        stack_s[r, c, k] = score[r, c]
-
-    def clear(self) -> None:
-        self.intensity.fill(0.0)
-        self.score.fill(0.0)
-        self.total.fill(0.0)
-        self.count.fill(0)
-
-    def render(self, params: BlendParams) -> tuple[FloatImage, npt.NDArray[np.bool_]]:
-        """The blended image (float32 [0, 1]) and where it has data."""
-        if params.method == "average":
-            covered = self.count > 0
-            mean = np.where(covered, self.total / np.maximum(self.count, 1), 0.0)
-            return mean.astype(np.float32), covered
-        return robust_blend(self.intensity, self.score, params)
-
-
 def masked_median(values: FloatImage, keep: npt.NDArray[np.bool_]) -> FloatImage:
     """Median over the last axis of the kept values (0 where none is kept)."""
     ordered = np.sort(np.where(keep, values, np.inf), axis=-1)
@@ -160,29 +102,44 @@ def masked_median(values: FloatImage, keep: npt.NDArray[np.bool_]) -> FloatImage
 
 
 def robust_blend(
-    intensity: FloatImage, score: FloatImage, params: BlendParams
+    intensity: FloatImage,
+    score: FloatImage,
+    params: BlendParams,
+    weight: FloatImage | None = None,
 ) -> tuple[FloatImage, npt.NDArray[np.bool_]]:
-    """Eq. 11 over candidate stacks (..., K): rho-threshold, top N, MAD trim, s^gamma mean."""
-    present = score > 0.0
-    best = score.max(axis=-1, keepdims=True)
-    keep = present & (score >= params.rho * best)
-    if intensity.shape[-1] > params.top_n:
+    """Eq. 11 over candidate stacks (..., K): rho-threshold, top N, MAD trim, s^gamma mean.
+
+    weight: s^gamma when the caller has it already (a lookup table on quantised scores
+    is ten times faster than the power). Returns the blended intensities and where there
+    was any candidate."""
+    shape = score.shape[:-1]
+    k = score.shape[-1]
+    flat_score = score.reshape(-1, k)
+    best = flat_score.max(axis=1)
+    # Work only on pixels with candidates: a tile is often half empty.
+    rows = np.flatnonzero(best > 0.0)
+    s = flat_score[rows]
+    values = intensity.reshape(-1, k)[rows]
+    keep = (s > 0.0) & (s >= np.float32(params.rho) * best[rows, None])
+    if k > params.top_n:
         # Stacks wider than N: keep the N best of the retained.
-        order = np.argsort(-np.where(keep, score, -1.0), axis=-1)
+        order = np.argsort(-np.where(keep, s, -1.0), axis=-1)
         rank = np.empty_like(order)
-        np.put_along_axis(rank, order, np.arange(order.shape[-1]), axis=-1)
+        np.put_along_axis(rank, order, np.arange(k), axis=-1)
         keep &= rank < params.top_n
-    median = masked_median(intensity, keep)
-    deviation = np.abs(intensity - median[..., None])
-    mad = masked_median(deviation, keep)[..., None]
+    median = masked_median(values, keep)
+    deviation = np.abs(values - median[:, None])
+    mad = masked_median(deviation, keep)[:, None]
     # With MAD = 0 (identical values, or a single candidate) nothing is an outlier.
-    trimmed = keep & ((deviation <= params.eta * mad) | (mad <= 1e-6))
-    weight = np.where(trimmed, score, 0.0) ** params.gamma
-    total = weight.sum(axis=-1)
-    covered = total > 0.0
-    blended = np.where(
-        covered,
-        (weight * np.where(trimmed, intensity, 0.0)).sum(axis=-1) / np.where(covered, total, 1.0),
-        0.0,
-    )
-    return blended.astype(np.float32), covered
+    trimmed = keep & ((deviation <= np.float32(params.eta) * mad) | (mad <= 1e-6))
+    if weight is None:
+        w = np.power(np.where(trimmed, s, np.float32(0.0)), np.float32(params.gamma))
+    else:
+        w = np.where(trimmed, weight.reshape(-1, k)[rows], np.float32(0.0))
+    total = w.sum(axis=1)
+    blended = np.zeros(flat_score.shape[0], np.float32)
+    covered = np.zeros(flat_score.shape[0], bool)
+    ok = total > 0.0
+    blended[rows[ok]] = (w[ok] * values[ok]).sum(axis=1) / total[ok]
+    covered[rows[ok]] = True
+    return blended.reshape(shape), covered.reshape(shape)

@@ -148,6 +148,10 @@ class NavFilter:
         self._last_imu: ImuInput | None = None
         self.transition: Array = np.eye(STATE_SIZE)
         self.imu_gaps = 0
+        self.odometry: Array = np.zeros(3)
+        """Sum of the predicted motion only (east, north metres; heading radians): the
+        dead-reckoned path, free of the jumps that measurement updates make. Differences
+        between two times are the filter's best estimate of the relative motion."""
 
     # -- initialisation --------------------------------------------------------------
     def initialise(
@@ -203,7 +207,11 @@ class NavFilter:
         self.ekf.F = jac
         self.ekf.Q = q
         self.ekf.u_dt = (imu, dt)
+        before = self.ekf.x[[PX, PY, PSI], 0].copy()
         self.ekf.predict()
+        step = self.ekf.x[[PX, PY, PSI], 0] - before
+        step[2] = (step[2] + math.pi) % (2 * math.pi) - math.pi
+        self.odometry += step
         self.transition = jac @ self.transition
 
     def predict_to(self, time: float) -> None:

@@ -125,7 +125,7 @@ class LocalRegistration:
         self.registrar: FmtRegistrar | None = None
         self._fine: FmtRegistrar | None = None
         self._fan: FanGeometry | None = None
-        self._last: tuple[int, float, Array, PreparedFrame] | None = None
+        self._last: tuple[int, float, Array, PreparedFrame, Array | None] | None = None
 
     def frame(self, ping: Ping) -> SonarFrame:
         """Preprocess one ping; tables are rebuilt only when the sonar's geometry changes."""
@@ -163,12 +163,20 @@ class LocalRegistration:
         return self._fine
 
     def register(
-        self, index: int, time: float, frame: SonarFrame, prior: Array | None
+        self,
+        index: int,
+        time: float,
+        frame: SonarFrame,
+        prior: Array | None,
+        odometry: Array | None = None,
     ) -> FrameOutcome:
         """Register a preprocessed frame against the last accepted one and validate.
 
         prior: the EKF vehicle pose (x, y, heading) at the frame time, or None when the
         filter has not started (the frame is then rejected: it cannot be placed).
+        odometry: the filter's dead-reckoned path at the frame time (``NavFilter.odometry``):
+        when given, the expected relative motion comes from it rather than from the
+        priors, which a live filter's updates make jump (a smoothed estimate does not).
         """
         if prior is None or not np.all(np.isfinite(prior)):
             return FrameOutcome(index, time, False, "no navigation prior")
@@ -177,10 +185,15 @@ class LocalRegistration:
         last = self._last
         if last is None or time - last[1] > self.params.max_gap_s:
             # The first frame, or a chain restart: kept on its prior alone.
-            self._last = (index, time, prior, prepared)
+            self._last = (index, time, prior, prepared, odometry)
             return FrameOutcome(index, time, True, "")
-        last_index, _, last_prior, last_prepared = last
-        expected_vehicle = relative_pose(last_prior, prior)
+        last_index, _, last_prior, last_prepared, last_odometry = last
+        if odometry is not None and last_odometry is not None:
+            dx, dy, dyaw = odometry - last_odometry
+            s, c = math.sin(last_prior[2]), math.cos(last_prior[2])
+            expected_vehicle = RelativePose(s * dx + c * dy, c * dx - s * dy, float(dyaw))
+        else:
+            expected_vehicle = relative_pose(last_prior, prior)
         expected_sonar = self.mount.sonar_relative(expected_vehicle)
         search = self.params.tau_p_m if self.params.guided_search else None
         reg = self.registrar.register(last_prepared, prepared, expected_sonar, search)
@@ -210,5 +223,5 @@ class LocalRegistration:
             outcome.edge = Edge(
                 last_index, index, measured.forward_m, measured.starboard_m, measured.yaw_rad
             )
-            self._last = (index, time, prior, prepared)
+            self._last = (index, time, prior, prepared, odometry)
         return outcome

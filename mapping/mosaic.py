@@ -13,14 +13,12 @@ fan covers.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.blend import BlendParams, TopNStack
 from mapping.fmt import SonarGrid
 
 FloatImage = npt.NDArray[np.float32]
@@ -96,78 +94,54 @@ def footprint_bounds(
     )
 
 
+def tile_box(
+    tiles: TileGrid, key: TileKey, bounds: tuple[float, float, float, float]
+) -> tuple[int, int, int, int] | None:
+    """The (row0, row1, col0, col1) pixels of tile ``key`` inside UTM ``bounds``
+    (west, south, east, north), or None when they do not meet."""
+    west, north = tiles.tile_west_north(key)
+    r = tiles.res_m
+    size = tiles.tile_px
+    c0 = max(0, math.floor((bounds[0] - west) / r))
+    c1 = min(size, math.ceil((bounds[2] - west) / r))
+    r0 = max(0, math.floor((north - bounds[3]) / r))
+    r1 = min(size, math.ceil((north - bounds[1]) / r))
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
+
+
 def warp_to_tile(
     layers: FloatImage,
     grid: SonarGrid,
     pose: SonarPose,
     tiles: TileGrid,
     key: TileKey,
+    box: tuple[int, int, int, int] | None = None,
 ) -> FloatImage:
-    """Warp a (rows, cols, channels) frame stack into tile ``key`` (tile_px^2, channels)."""
+    """Warp a (rows, cols, channels) frame stack into tile ``key``: the whole tile
+    (tile_px^2, channels), or only its pixels ``box`` = (row0, row1, col0, col1)."""
+    r0, r1, c0, c1 = box if box is not None else (0, tiles.tile_px, 0, tiles.tile_px)
     # tile pixel -> UTM -> sonar metric -> sonar pixel, as one affine for cv2.
     to_sonar_pixel = (
         np.linalg.inv(grid.pixel_to_metric())
         @ np.linalg.inv(sonar_to_utm(pose))
         @ tiles.tile_pixel_to_utm(key)
+        @ np.array([[1.0, 0.0, c0], [0.0, 1.0, r0], [0.0, 0.0, 1.0]])
     )
-    size = tiles.tile_px
     warped = cv2.warpAffine(
         layers,
         to_sonar_pixel[:2],
-        (size, size),
+        (c1 - c0, r1 - r0),
         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0.0,
     )
-    return warped.reshape(size, size, -1)
-
-
-class TileMosaic:
-    """Blending accumulators on the tile grid, created on demand as frames touch tiles."""
-
-    def __init__(self, tiles: TileGrid, params: BlendParams | None = None) -> None:
-        self.tiles = tiles
-        self.params = params or BlendParams()
-        self.stacks: dict[TileKey, TopNStack] = {}
-
-    def add_frame(
-        self,
-        image: FloatImage,
-        score: FloatImage,
-        mask: npt.NDArray[np.bool_],
-        grid: SonarGrid,
-        pose: SonarPose,
-    ) -> list[TileKey]:
-        """Blend one frame in; returns the tiles it touched."""
-        layers = np.dstack([image, score, mask.astype(np.float32)])
-        touched = []
-        for key in self.tiles.tiles_covering(*footprint_bounds(grid, mask, pose)):
-            warped = warp_to_tile(layers, grid, pose, self.tiles, key)
-            # Only pixels wholly inside the fan: interpolation across the fan edge would
-            # mix in the zeros outside it.
-            valid = warped[..., 2] >= 0.999
-            if not valid.any():
-                continue
-            stack = self.stacks.get(key)
-            if stack is None:
-                stack = self.stacks[key] = TopNStack((self.tiles.tile_px,) * 2, self.params.top_n)
-            stack.add(warped[..., 0], warped[..., 1], valid)
-            touched.append(key)
-        return touched
-
-    def render_tile(self, key: TileKey) -> tuple[FloatImage, npt.NDArray[np.bool_]]:
-        return self.stacks[key].render(self.params)
-
-    def render_all(self) -> Iterator[tuple[TileKey, FloatImage, npt.NDArray[np.bool_]]]:
-        for key in sorted(self.stacks):
-            image, covered = self.render_tile(key)
-            yield key, image, covered
+    return warped.reshape(r1 - r0, c1 - c0, -1)
 
 
 def assemble(
-    tiles: TileGrid, rendered: dict[TileKey, tuple[FloatImage, npt.NDArray[np.bool_]]]
+    tiles: TileGrid, rendered: dict[TileKey, npt.NDArray[np.uint8]]
 ) -> tuple[npt.NDArray[np.uint8], tuple[float, float]]:
-    """One north-up uint8 image of all tiles (0 = no data, data 1..255) and the UTM
+    """One north-up uint8 image of rendered tiles (0 = no data, data 1..255) and the UTM
     (west, north) of its top-left corner."""
     if not rendered:
         return np.zeros((0, 0), np.uint8), (0.0, 0.0)
@@ -176,17 +150,8 @@ def assemble(
     c0, c1, r0, r1 = min(cols), max(cols), min(rows), max(rows)
     size = tiles.tile_px
     canvas = np.zeros(((r1 - r0 + 1) * size, (c1 - c0 + 1) * size), np.uint8)
-    for (col, row), (image, covered) in rendered.items():
+    for (col, row), values in rendered.items():
         y = (r1 - row) * size
         x = (col - c0) * size
-        canvas[y : y + size, x : x + size] = to_uint8_with_nodata(image, covered)
+        canvas[y : y + size, x : x + size] = values
     return canvas, (c0 * tiles.tile_m, (r1 + 1) * tiles.tile_m)
-
-
-def to_uint8_with_nodata(
-    image: FloatImage, covered: npt.NDArray[np.bool_]
-) -> npt.NDArray[np.uint8]:
-    """[0, 1] intensities to 1..255, 0 where there is no data (the contract's no-data)."""
-    values = np.clip(np.rint(image * 254.0) + 1.0, 1, 255).astype(np.uint8)
-    values[~covered] = 0
-    return values

@@ -44,11 +44,12 @@ from mapping.loops import (
     register_candidates,
     solve_with_closures,
 )
-from mapping.mosaic import SonarPose, TileGrid, TileMosaic
+from mapping.mosaic import SonarPose, TileGrid
 from mapping.navigation import estimate_at, prepare_inputs
 from mapping.posegraph import Edge, OptimiserParams, optimise
 from mapping.preprocess import PreprocessParams
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
 
@@ -98,7 +99,7 @@ class SurveyResult:
     outcomes: list[FrameOutcome]
     rejected: Counter[str]
     timings: dict[str, float]
-    mosaic: TileMosaic
+    mosaic: TileStore
     edges: list[Edge]
     mount: SonarMount
     closures: list[Edge] = field(default_factory=list)
@@ -268,11 +269,12 @@ def blend_frames(
     params: PipelineParams,
     clock: _Clock | None = None,
     progress: Callable[[str, int, int], None] | None = None,
-) -> TileMosaic:
+    spill: TileSpill | None = None,
+) -> TileStore:
     """Warp every mapped frame to its pose and blend it into the tile mosaic (Algorithm 1,
     lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates."""
     clock = clock or _Clock()
-    mosaic = TileMosaic(TileGrid(params.mosaic_res_m, params.tile_px), params.blend)
+    mosaic = TileStore(TileGrid(params.mosaic_res_m, params.tile_px), params.blend, spill)
     scorer = FeatureScorer(params.blend)
     preprocessing = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
     sonar_poses = mount.sonar_pose(poses)
@@ -290,7 +292,12 @@ def blend_frames(
         score = scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
         east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
         pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
-        mosaic.add_frame(sonar_frame.image, score, sonar_frame.mask, preprocessor.grid, pose)
+        mosaic.insert(
+            index, sonar_frame.image, score, sonar_frame.mask, preprocessor.grid, pose, ping.time
+        )
+        if index % 50 == 0:
+            # Tiles the boat has left leave memory (a no-op in short surveys).
+            mosaic.evict_idle(ping.time)
         clock.add("blending", t1)
         if progress is not None:
             progress("blending", index + 1, n)
@@ -304,8 +311,15 @@ def map_survey(
     params: PipelineParams | None = None,
     mode: Mode = Mode.SINGLE_STAGE,
     progress: Callable[[str, int, int], None] | None = None,
+    registrations: Sequence[FrameOutcome] | None = None,
+    spill: TileSpill | None = None,
 ) -> SurveyResult:
-    """Map a survey: ``pings()`` yields the pings in time order, afresh on each call."""
+    """Map a survey: ``pings()`` yields the pings in time order, afresh on each call.
+
+    registrations: the local registration of every frame, when already done (the
+    streaming engine's survey-end pass reuses its own); otherwise they are computed.
+    spill: where tiles the boat has left go (default: kept in memory, compressed).
+    """
     params = params or PipelineParams()
     clock = _Clock()
     started = time.perf_counter()
@@ -323,9 +337,9 @@ def map_survey(
     weights = estimate.prior_weights()
     started = clock.add("ekf", started)
 
+    outcomes: list[FrameOutcome] = list(registrations) if registrations is not None else []
     registration = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
-    outcomes: list[FrameOutcome] = []
-    for index, ping in enumerate(pings()):
+    for index, ping in enumerate(pings() if registrations is None else ()):
         if index >= n:
             break
         t0 = time.perf_counter()
@@ -333,19 +347,15 @@ def map_survey(
         t1 = clock.add("preprocess", t0)
         prior = priors[index] if estimate.valid[index] else None
         if mode is Mode.GPS_ONLY:
-            outcomes.append(
-                FrameOutcome(
-                    index,
-                    ping.time,
-                    prior is not None,
-                    "" if prior is not None else "no navigation prior",
-                )
-            )
+            reason = "" if prior is not None else "no navigation prior"
+            outcomes.append(FrameOutcome(index, ping.time, prior is not None, reason))
         else:
             outcomes.append(registration.register(index, ping.time, sonar_frame, prior))
         clock.add("registration", t1)
         if progress is not None:
             progress("registering", index + 1, n)
+    if len(outcomes) != n:
+        raise ValueError(f"{len(outcomes)} registrations for {n} frames")
     accepted = np.array([o.accepted for o in outcomes], bool)
     edges = [o.edge for o in outcomes if o.edge is not None]
     rejected = Counter(o.reason for o in outcomes if not o.accepted)
@@ -360,21 +370,23 @@ def map_survey(
     loop_report = LoopReport()
     closures: list[Edge] = []
     uses_closures = mode in (Mode.SINGLE_STAGE, Mode.TWO_STAGE) and params.loops.enabled
-    if uses_closures and registration.preprocessor is not None:
+    if uses_closures and n > 0:
         t0 = time.perf_counter()
-        preprocessor = registration.preprocessor
+        closer = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+        closer.frame(next(iter(pings())))  # the sonar's geometry
+        preprocessor = closer.preprocessor
+        assert preprocessor is not None
         lit = (preprocessor.min_range_m, preprocessor.fan.max_range_m)
         bearings = preprocessor.fan.bearings_rad
         half_fan = max(abs(bearings[0]), abs(bearings[-1]))
         pairs = find_candidates(times, poses, accepted, mount, lit, half_fan, params.loops)
-        closer = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
         found = register_candidates(pings(), pairs, poses, closer, params.loops, loop_report)
         t1 = clock.add("loop_closure", t0)
         poses, closures = solve_with_closures(solve, found, params.loops, loop_report)
         clock.add("optimisation", t1)
     mapped = accepted & np.all(np.isfinite(poses), axis=1)
 
-    mosaic = blend_frames(pings(), poses, mapped, mount, frame, params, clock, progress)
+    mosaic = blend_frames(pings(), poses, mapped, mount, frame, params, clock, progress, spill)
     return SurveyResult(
         frame=frame,
         mode=mode,

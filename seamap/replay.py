@@ -6,6 +6,7 @@ writers; the same core the daemon runs live.
 
 from __future__ import annotations
 
+import heapq
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -19,6 +20,7 @@ from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.samples import Ping
+from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
 from seamap.config import SiteConfig, SonarConfig, load_config
 from seamap.errors import SeamapError
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
@@ -94,9 +96,39 @@ def ping_source(path: Path, skipped: dict[str, int]) -> Callable[[], Iterator[Pi
 
 
 def render(result: SurveyResult) -> tuple[np.ndarray, float, float]:
-    rendered = dict(((k, (img, cov)) for k, img, cov in result.mosaic.render_all()))
-    image, (west, north) = assemble(result.mosaic.tiles, rendered)
+    rendered = {tile.key: tile.values for tile in result.mosaic.rendered_tiles()}
+    image, (west, north) = assemble(result.mosaic.grid, rendered)
     return image, west, north
+
+
+def stream_survey(
+    pings: Callable[[], Iterator[Ping]],
+    nav: NavSamples,
+    mount: SonarMount,
+    params: PipelineParams,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
+    """The streaming engine fed with the logs in arrival order (as the daemon would be),
+    then its survey-end pass. Returns the final result and the live one (the live poses
+    and tiles as they stood before the survey-end pass) with the engine's statistics."""
+    engine = StreamingEngine(mount, StreamingParams(pipeline=params))
+    arrivals: Iterator[Sample] = heapq.merge(
+        nav.imu, nav.gnss, nav.heading, nav.attitude, pings(), key=lambda sample: sample.time
+    )
+    for sample in arrivals:
+        engine.add(sample)
+        if progress is not None and isinstance(sample, Ping):
+            progress("streaming", engine.stats.frames_received, engine.stats.frames_received)
+    engine.flush()
+    final = engine.finish(pings, progress)
+    poses = np.array(engine.poses) if engine.poses else np.zeros((0, 3))
+    live = replace(
+        final,
+        poses=poses,
+        mapped=np.all(np.isfinite(poses), axis=1),
+        mosaic=engine.tiles,
+    )
+    return final, (live, engine.stats)
 
 
 def replay(
@@ -116,15 +148,14 @@ def replay(
     params = params or pipeline_params(config)
     samples, nav_info = read_navigation(nav, config)
     skipped: dict[str, int] = {}
+    pings = ping_source(sonar, skipped)
+    mount = mount_from_config(config.sonar)
+    live: tuple[SurveyResult, StreamStats] | None = None
     try:
-        result = map_survey(
-            ping_source(sonar, skipped),
-            samples,
-            mount_from_config(config.sonar),
-            params,
-            Mode(mode),
-            progress,
-        )
+        if mode == "streaming":
+            result, live = stream_survey(pings, samples, mount, params, progress)
+        else:
+            result = map_survey(pings, samples, mount, params, Mode(mode), progress)
     except ValueError as exc:
         raise SeamapError(f"{nav}: {exc}") from None
     if result.frames_read == 0:
@@ -174,16 +205,37 @@ def replay(
         "mosaic": {
             "width": int(image.shape[1]),
             "height": int(image.shape[0]),
-            "tiles": len(result.mosaic.stacks),
+            "tiles": len(result.mosaic.all_keys()),
         },
         "trajectory_rows": rows,
         "timings_s": timings,
         "seconds_per_frame": {k: round(v / n, 6) for k, v in timings.items()},
         "settings": {"config": asdict(config), "pipeline": asdict(params)},
     }
+    if live is not None:
+        stats = live[1]
+        report["streaming"] = {
+            "frames_received": stats.frames_received,
+            "frames_mapped": stats.frames_mapped,
+            "frames_rejected": stats.frames_rejected,
+            "frames_skipped": stats.frames_skipped,
+            "samples_late": stats.samples_late,
+            "samples_duplicate": stats.samples_duplicate,
+            "windows_solved": stats.windows_solved,
+            "frames_reblended": stats.frames_reblended,
+            "ms_per_frame": {
+                k: round(1000 * v / max(stats.frames_received, 1), 3)
+                for k, v in stats.stage_s.items()
+            },
+        }
     if truth is not None:
         from tools.evaluate import evaluate
 
         report["accuracy"] = evaluate(truth, result, image, west, north, params.mosaic_res_m)
+        if live is not None:
+            live_image, live_west, live_north = render(live[0])
+            report["accuracy_live"] = evaluate(
+                truth, live[0], live_image, live_west, live_north, params.mosaic_res_m
+            )
     write_report(out / "report.json", report)
     return report

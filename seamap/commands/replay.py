@@ -10,7 +10,7 @@ from typing import Any
 
 from seamap.errors import SeamapError
 
-MODES = ("single-stage", "two-stage", "fmt-only", "gps-only")
+MODES = ("single-stage", "two-stage", "fmt-only", "gps-only", "streaming")
 
 
 def register(subparsers: Any) -> None:

@@ -3,7 +3,8 @@
 ``simulate(scenario, seed, out, **overrides)`` writes a survey folder (sonar.oculus,
 nav.tlog, truth.json, seabed.tif, seabed_height.tif, site.toml) and returns a
 ``SimulationSummary``; ``SCENARIOS`` names the scenarios (``quadrats``, ``farm``,
-``quadrats-current``). See ``tools.sim.writer`` for the truth's schema and the modules
+``quadrats-current``, ``hectare``; see ``tools.sim.stream`` for streaming a survey in
+memory without files). See ``tools.sim.writer`` for the truth's schema and the modules
 for the physics: ``seabed`` (reflectivity and relief), ``trajectory`` (lawnmower and boat
 motion), ``sonar`` (ping forward model), ``sensors`` (GPS, compass, IMU), ``tlog``.
 """

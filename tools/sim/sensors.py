@@ -55,9 +55,19 @@ def gauss_markov(
     out[0] = sigma * w[0]
     decay = np.exp(-np.diff(times) / tau)
     drive = sigma * np.sqrt(1.0 - decay**2)
-    # The recursion is inherently sequential; it runs over a few thousand samples.
-    for k in range(1, n):
-        out[k] = decay[k - 1] * out[k - 1] + drive[k - 1] * w[k]
+    # The recursion is sequential (hundreds of thousands of IMU samples in a long survey):
+    # run it on Python floats, one component at a time. Each step is the same IEEE
+    # multiply, multiply, add as the array expression, so the values are bit-identical.
+    flat_out = out.reshape(n, -1)
+    flat_w = w.reshape(n, -1)
+    step = list(zip(decay.tolist(), drive.tolist(), strict=True))
+    for j in range(flat_out.shape[1]):
+        x = float(flat_out[0, j])
+        column = [x]
+        for (d, g), wk in zip(step, flat_w[1:, j].tolist(), strict=True):
+            x = d * x + g * wk
+            column.append(x)
+        flat_out[:, j] = column
     return out
 
 

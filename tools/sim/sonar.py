@@ -216,6 +216,15 @@ def _f32(x: object) -> F32Array:
     return np.asarray(x, np.float32)
 
 
+def _running_min(values: F32Array) -> F32Array:
+    """``np.minimum.accumulate(values, axis=0)`` (the same numbers: a minimum is exact),
+    a row at a time, which is several times faster on a C-ordered (ranges, beams) array."""
+    out = values.copy()
+    for i in range(1, out.shape[0]):
+        np.minimum(out[i - 1], out[i], out=out[i])
+    return out
+
+
 def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32Array, F32Array]:
     """The noiseless echo intensity (linear, after an ideal TVG) per (range, beam), and
     the range column (n_ranges, 1), both float32."""
@@ -233,7 +242,7 @@ def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32A
     # Acoustic shadows: a bin is hidden when a nearer bin of its beam subtends a smaller
     # depression angle (its top pokes above this bin's line of sight).
     tan_dep = _f32(np.where(fp.valid, (h - z) / ground, _NO_GROUND))
-    nearest = np.minimum.accumulate(tan_dep, axis=0)
+    nearest = _running_min(tan_dep)
     visibility = np.clip(1.0 - (tan_dep - nearest) * ground / _SHADOW_SOFTNESS_M, 0.0, 1.0)
 
     # Local grazing angle: the plane's grazing angle plus the slope of the relief along

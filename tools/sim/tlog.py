@@ -22,12 +22,17 @@ second, as it does in a real log. time_boot_ms / time_usec count from the autopi
 boot (``start_time - autopilot_uptime_s``); the receive stamp is the sample time plus a
 link delay (``stamp_delay_s`` + exponential jitter of mean ``stamp_jitter_s``), and the
 packets are written in stamp order.
+
+``plan_tlog`` gives the log as ``MessageTable``s (stamps plus compact field arrays, each
+message built on demand), which ``write_tlog`` packs into the file and
+``stream.survey_events`` turns into samples without a file.
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,15 +75,42 @@ class NavStreams:
     motion: Motion
 
 
-class _Log:
-    """Messages collected with their stamps, packed in stamp order at the end."""
+@dataclass(frozen=True)
+class MessageTable:
+    """One stream of the tlog: receive stamps (UNIX microseconds, in generation order) and
+    a builder of its k-th pymavlink message from compact per-message arrays, so that a
+    long log need not hold its messages as objects. ``sysid`` is the sender."""
+
+    name: str
+    stamps: npt.NDArray[np.int64]
+    build: Callable[[int], Any]
+    sysid: int = AUTOPILOT_SYSID
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+
+@dataclass(frozen=True)
+class TlogPlan:
+    """Every stream of the tlog, in the order the writer adds them (which breaks ties of
+    equal stamps: an earlier table's message goes first). ``imu``/``gps``/``attitude``
+    name the tables the navigation reader takes its samples from."""
+
+    tables: tuple[MessageTable, ...]
+
+    def table(self, name: str) -> MessageTable:
+        """The table of messages ``name`` ("RAW_IMU", "ATTITUDE", ...)."""
+        return next(t for t in self.tables if t.name == name)
+
+
+class _Stamper:
+    """Receive stamps and autopilot clocks, drawing the link delays from one generator."""
 
     def __init__(self, s: Scenario, rng: np.random.Generator) -> None:
         self.boot = s.start_time - s.autopilot_uptime_s
         self.delay_s = s.stamp_delay_s
         self.jitter_s = s.stamp_jitter_s
         self.rng = rng
-        self.items: list[tuple[int, int, Any]] = []
 
     def stamps(self, times: FloatArray) -> npt.NDArray[np.int64]:
         """Receive stamps (UNIX us) of messages generated at ``times``."""
@@ -93,31 +125,38 @@ class _Log:
     def boot_us(self, times: FloatArray) -> npt.NDArray[np.int64]:
         return np.rint((np.asarray(times) - self.boot) * 1e6).astype(np.int64)
 
-    def add(
-        self, stamps: npt.NDArray[np.int64], messages: list[Any], sysid: int = AUTOPILOT_SYSID
-    ) -> None:
-        self.items.extend(zip(stamps.tolist(), [sysid] * len(messages), messages, strict=True))
 
-    def write(self, path: Path) -> dict[str, int]:
-        """Pack in stamp order (sequence numbers follow that order) and write the file."""
-        senders = {
-            AUTOPILOT_SYSID: mavlink.MAVLink(None, AUTOPILOT_SYSID, AUTOPILOT_COMPID),
-            GCS_SYSID: mavlink.MAVLink(None, GCS_SYSID, GCS_COMPID),
-        }
-        order = sorted(range(len(self.items)), key=lambda i: (self.items[i][0], i))
-        chunks: list[bytes] = []
-        counts: dict[str, int] = {}
-        prefix = struct.Struct(">Q")
-        for i in order:
-            stamp, sysid, msg = self.items[i]
-            sender = senders[sysid]
-            chunks.append(prefix.pack(stamp))
-            chunks.append(msg.pack(sender))
+def _write(path: Path, plan: TlogPlan) -> dict[str, int]:
+    """Pack in stamp order (sequence numbers follow that order) and write the file."""
+    senders = {
+        AUTOPILOT_SYSID: mavlink.MAVLink(None, AUTOPILOT_SYSID, AUTOPILOT_COMPID),
+        GCS_SYSID: mavlink.MAVLink(None, GCS_SYSID, GCS_COMPID),
+    }
+    order, which, index = merge_order(plan.tables)
+    stamps = np.concatenate([t.stamps for t in plan.tables])[order].tolist()
+    prefix = struct.Struct(">Q")
+    counts: dict[str, int] = {}
+    with open(path, "wb") as out:
+        for stamp, w, k in zip(stamps, which[order].tolist(), index[order].tolist(), strict=True):
+            table = plan.tables[w]
+            sender = senders[table.sysid]
+            msg = table.build(k)
+            out.write(prefix.pack(stamp) + msg.pack(sender))
             sender.seq = (sender.seq + 1) % 256
-            name = msg.get_type()
-            counts[name] = counts.get(name, 0) + 1
-        path.write_bytes(b"".join(chunks))
-        return dict(sorted(counts.items()))
+            counts[table.name] = counts.get(table.name, 0) + 1
+    return dict(sorted(counts.items()))
+
+
+def merge_order(
+    tables: tuple[MessageTable, ...],
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The order of all the tables' messages in the log: by stamp, ties in table order
+    then message order. Returns (order, table number, message number), the last two
+    indexed by the concatenation of the tables (``order`` permutes it)."""
+    stamps = np.concatenate([t.stamps for t in tables]) if tables else np.zeros(0, np.int64)
+    which = np.repeat(np.arange(len(tables), dtype=np.int64), [len(t) for t in tables])
+    index = np.concatenate([np.arange(len(t), dtype=np.int64) for t in tables]) if tables else which
+    return np.argsort(stamps, kind="stable"), which, index
 
 
 def _times(start: float, end: float, rate_hz: float, phase: float) -> FloatArray:
@@ -129,21 +168,21 @@ def _wrap_pi(angle: FloatArray) -> FloatArray:
     return np.mod(np.asarray(angle) + math.pi, 2 * math.pi) - math.pi
 
 
-def _i(values: FloatArray) -> list[int]:
-    return [int(v) for v in np.rint(values)]
+def _i(values: FloatArray) -> npt.NDArray[np.int64]:
+    return np.rint(values).astype(np.int64)
 
 
-def write_tlog(
-    path: Path,
+def plan_tlog(
     s: Scenario,
     site: SiteFrame,
     streams: NavStreams,
     start: float,
     end: float,
     rng: np.random.Generator,
-) -> dict[str, int]:
-    """Write the telemetry between ``start`` and ``end`` (UNIX s); returns message counts."""
-    log = _Log(s, rng)
+) -> TlogPlan:
+    """The telemetry between ``start`` and ``end`` (UNIX s) as message tables (the link
+    delays drawn from ``rng`` in a fixed order, so a plan is the same for the same rng)."""
+    stamper = _Stamper(s, rng)
     px4 = s.flavour == "px4"
 
     # Heartbeats and the autopilot's clock.
@@ -156,113 +195,120 @@ def write_tlog(
     heartbeat = mavlink.MAVLink_heartbeat_message(
         mavlink.MAV_TYPE_SURFACE_BOAT, autopilot, base_mode, custom, mavlink.MAV_STATE_ACTIVE, 3
     )
-    log.add(log.stamps(hb_times), [heartbeat] * len(hb_times))
+    tables = [MessageTable("HEARTBEAT", stamper.stamps(hb_times), lambda k: heartbeat)]
     st_times = _times(start, end, 1.0, 0.61)
-    log.add(
-        log.stamps(st_times),
-        [
-            mavlink.MAVLink_system_time_message(round(t * 1e6), int(ms))
-            for t, ms in zip(st_times, log.boot_ms(st_times), strict=True)
-        ],
+    st_us, st_ms = st_times.tolist(), stamper.boot_ms(st_times).tolist()
+    tables.append(
+        MessageTable(
+            "SYSTEM_TIME",
+            stamper.stamps(st_times),
+            lambda k: mavlink.MAVLink_system_time_message(round(st_us[k] * 1e6), st_ms[k]),
+        )
     )
     gcs_times = _times(start, end, 1.0 / s.gcs_heartbeat_period_s, 0.83)
     gcs_times = gcs_times + rng.uniform(-0.05, 0.05, len(gcs_times))
     gcs = mavlink.MAVLink_heartbeat_message(
         mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
     )
-    log.add(log.stamps(gcs_times), [gcs] * len(gcs_times), sysid=GCS_SYSID)
+    tables.append(
+        MessageTable("HEARTBEAT", stamper.stamps(gcs_times), lambda k: gcs, sysid=GCS_SYSID)
+    )
+    tables.append(_imu_table(stamper, streams.imu, px4, start, end))
+    tables.append(_gps_table(stamper, streams.gps, start, end))
+    tables.extend(_heading_tables(stamper, s, site, streams, start, end))
+    return TlogPlan(tuple(tables))
 
-    _add_imu(log, streams.imu, px4, start, end)
-    _add_gps(log, streams.gps, start, end)
-    _add_heading(log, s, site, streams, start, end)
-    return log.write(path)
+
+def write_tlog(path: Path, plan: TlogPlan) -> dict[str, int]:
+    """Write the planned telemetry as a .tlog; returns the message counts by type."""
+    return _write(path, plan)
 
 
 def _window(times: FloatArray, start: float, end: float) -> npt.NDArray[np.bool_]:
     return (times >= start) & (times < end)
 
 
-def _add_imu(log: _Log, imu: ImuTrack, px4: bool, start: float, end: float) -> None:
+def _imu_table(
+    stamper: _Stamper, imu: ImuTrack, px4: bool, start: float, end: float
+) -> MessageTable:
     sel = _window(imu.time, start, end)
     t = imu.time[sel]
     acc, gyro, mag = imu.accel[sel], imu.gyro[sel], imu.mag[sel]
-    us = log.boot_us(t)
+    us = stamper.boot_us(t)
+    stamps = stamper.stamps(t)
     if px4:
-        values = np.concatenate([acc, gyro, mag], axis=1).tolist()
-        msgs = [
-            mavlink.MAVLink_highres_imu_message(
-                int(us[k]), *values[k], 1013.0, 0.0, 0.12, 31.5, 0x1FFF, 0
+        values = np.concatenate([acc, gyro, mag], axis=1)
+
+        def highres(k: int) -> Any:
+            return mavlink.MAVLink_highres_imu_message(
+                int(us[k]), *values[k].tolist(), 1013.0, 0.0, 0.12, 31.5, 0x1FFF, 0
             )
-            for k in range(len(t))
-        ]
-    else:
-        acc_mg = np.rint(acc / GRAVITY_MPS2 * 1000.0).astype(np.int64)
-        gyro_mrad = np.rint(gyro * 1000.0).astype(np.int64)
-        mag_mg = np.rint(mag * 1000.0).astype(np.int64)
-        msgs = [
-            mavlink.MAVLink_raw_imu_message(
-                int(us[k]),
-                *acc_mg[k].tolist(),
-                *gyro_mrad[k].tolist(),
-                *mag_mg[k].tolist(),
-                0,
-                3150,
-            )
-            for k in range(len(t))
-        ]
-    log.add(log.stamps(t), msgs)
+
+        return MessageTable("HIGHRES_IMU", stamps, highres)
+    # ArduPilot's scaling: milli-g, mrad/s, milligauss (int16 on the wire).
+    scaled = np.concatenate(
+        [_i(acc / GRAVITY_MPS2 * 1000.0), _i(gyro * 1000.0), _i(mag * 1000.0)], axis=1
+    ).astype(np.int32)
+
+    def raw(k: int) -> Any:
+        return mavlink.MAVLink_raw_imu_message(int(us[k]), *scaled[k].tolist(), 0, 3150)
+
+    return MessageTable("RAW_IMU", stamps, raw)
 
 
-def _add_gps(log: _Log, gps: GpsTrack, start: float, end: float) -> None:
+def _gps_table(stamper: _Stamper, gps: GpsTrack, start: float, end: float) -> MessageTable:
     sel = _window(gps.time, start, end)
     t = gps.time[sel]
-    us = log.boot_us(t)
-    lat, lon = _i(gps.lat[sel] * 1e7), _i(gps.lon[sel] * 1e7)
-    alt = _i(gps.alt[sel] * 1000.0)
-    alt_ell = _i((gps.alt[sel] + _GEOID_UNDULATION_M) * 1000.0)
-    eph = _i(gps.hdop[sel] * 100.0)
-    vel = _i(gps.speed[sel] * 100.0)
-    cog = [c % 36000 for c in _i(np.degrees(gps.course_true[sel]) * 100.0)]
+    us = stamper.boot_us(t)
     h_acc = _i(gps.h_acc[sel] * 1000.0)
-    sats = gps.satellites[sel].tolist()
-    msgs = [
-        mavlink.MAVLink_gps_raw_int_message(
-            int(us[k]),
-            mavlink.GPS_FIX_TYPE_3D_FIX,
-            lat[k],
-            lon[k],
-            alt[k],
-            eph[k],
-            150,
-            vel[k],
-            cog[k],
-            int(sats[k]),
-            alt_ell[k],
-            h_acc[k],
-            int(h_acc[k] * 1.6),
-            150,
-            0,
-            0,
+    # lat, lon (degE7), alt, alt_ellipsoid (mm), eph (HDOP x 100), vel (cm/s),
+    # cog (cdeg from true north), satellites, h_acc, v_acc (mm).
+    fields = np.stack(
+        [
+            _i(gps.lat[sel] * 1e7),
+            _i(gps.lon[sel] * 1e7),
+            _i(gps.alt[sel] * 1000.0),
+            _i((gps.alt[sel] + _GEOID_UNDULATION_M) * 1000.0),
+            _i(gps.hdop[sel] * 100.0),
+            _i(gps.speed[sel] * 100.0),
+            _i(np.degrees(gps.course_true[sel]) * 100.0) % 36000,
+            gps.satellites[sel],
+            h_acc,
+            (h_acc * 1.6).astype(np.int64),
+        ],
+        axis=1,
+    )
+
+    def build(k: int) -> Any:
+        lat, lon, alt, alt_ell, eph, vel, cog, sats, h, v = fields[k].tolist()
+        fix = mavlink.GPS_FIX_TYPE_3D_FIX
+        return mavlink.MAVLink_gps_raw_int_message(
+            int(us[k]), fix, lat, lon, alt, eph, 150, vel, cog, sats, alt_ell, h, v, 150, 0, 0
         )
-        for k in range(len(t))
-    ]
-    log.add(log.stamps(t), msgs)
+
+    return MessageTable("GPS_RAW_INT", stamper.stamps(t), build)
 
 
-def _add_heading(
-    log: _Log, s: Scenario, site: SiteFrame, streams: NavStreams, start: float, end: float
-) -> None:
+def _heading_tables(
+    stamper: _Stamper, s: Scenario, site: SiteFrame, streams: NavStreams, start: float, end: float
+) -> list[MessageTable]:
+    """ATTITUDE, GLOBAL_POSITION_INT and VFR_HUD, at the heading rate."""
     hd = streams.heading
     sel = _window(hd.time, start, end)
     t = hd.time[sel]
-    ms = log.boot_ms(t)
+    ms = stamper.boot_ms(t)
     yaw = _wrap_pi(hd.heading_true[sel])
     angles = np.stack(
         [hd.roll[sel], hd.pitch[sel], yaw, hd.rollspeed[sel], hd.pitchspeed[sel], hd.yawspeed[sel]],
         axis=1,
-    ).tolist()
-    attitude = [mavlink.MAVLink_attitude_message(int(ms[k]), *angles[k]) for k in range(len(t))]
-    log.add(log.stamps(t), attitude)
+    )
+    tables = [
+        MessageTable(
+            "ATTITUDE",
+            stamper.stamps(t),
+            lambda k: mavlink.MAVLink_attitude_message(int(ms[k]), *angles[k].tolist()),
+        )
+    ]
 
     # The autopilot's own position estimate: the GPS bias (it cannot know it) without the
     # GPS white noise, which its filter mostly removes.
@@ -271,34 +317,44 @@ def _add_heading(
     bias_e = np.interp(t, gps.time, gps.bias_east)
     bias_n = np.interp(t, gps.time, gps.bias_north)
     lat, lon = site.to_latlon(
-        truth["east"] + bias_e + log.rng.normal(0, 0.05, len(t)),
-        truth["north"] + bias_n + log.rng.normal(0, 0.05, len(t)),
+        truth["east"] + bias_e + stamper.rng.normal(0, 0.05, len(t)),
+        truth["north"] + bias_n + stamper.rng.normal(0, 0.05, len(t)),
     )
     vn, ve = site.rotate_grid_to_true(truth["vel_north"], truth["vel_east"])
     alt_m = truth["up"]
-    hdg_cdeg = [h % 36000 for h in _i(np.degrees(hd.heading_true[sel]) * 100.0)]
-    lat_i, lon_i = _i(lat * 1e7), _i(lon * 1e7)
-    alt_mm, rel_mm = _i(alt_m * 1000.0), _i((alt_m - s.antenna_height_m) * 1000.0)
-    vx, vy, vz = _i(vn * 100), _i(ve * 100), _i(-truth["vel_up"] * 100)
-    position = [
-        mavlink.MAVLink_global_position_int_message(
-            int(ms[k]), lat_i[k], lon_i[k], alt_mm[k], rel_mm[k], vx[k], vy[k], vz[k], hdg_cdeg[k]
+    position = np.stack(
+        [
+            _i(lat * 1e7),
+            _i(lon * 1e7),
+            _i(alt_m * 1000.0),
+            _i((alt_m - s.antenna_height_m) * 1000.0),
+            _i(vn * 100),
+            _i(ve * 100),
+            _i(-truth["vel_up"] * 100),
+            _i(np.degrees(hd.heading_true[sel]) * 100.0) % 36000,
+        ],
+        axis=1,
+    )
+    tables.append(
+        MessageTable(
+            "GLOBAL_POSITION_INT",
+            stamper.stamps(t),
+            lambda k: mavlink.MAVLink_global_position_int_message(
+                int(ms[k]), *position[k].tolist()
+            ),
         )
-        for k in range(len(t))
-    ]
-    log.add(log.stamps(t), position)
+    )
 
     speed = np.hypot(vn, ve)
-    heading_deg = [h % 360 for h in _i(np.degrees(hd.heading_true[sel]))]
-    hud = [
-        mavlink.MAVLink_vfr_hud_message(
-            float(speed[k]),
-            float(speed[k]),
-            heading_deg[k],
-            round(35 * speed[k] / s.speed_mps),
-            float(alt_m[k]),
-            float(truth["vel_up"][k]),
+    heading_deg = _i(np.degrees(hd.heading_true[sel])) % 360
+    throttle = [round(35 * v / s.speed_mps) for v in speed.tolist()]
+    vel_up = truth["vel_up"]
+
+    def hud(k: int) -> Any:
+        v = float(speed[k])
+        return mavlink.MAVLink_vfr_hud_message(
+            v, v, int(heading_deg[k]), throttle[k], float(alt_m[k]), float(vel_up[k])
         )
-        for k in range(len(t))
-    ]
-    log.add(log.stamps(t), hud)
+
+    tables.append(MessageTable("VFR_HUD", stamper.stamps(t), hud))
+    return tables

@@ -1,0 +1,328 @@
+"""The mosaic's tiles: per-pixel blending candidates on the contract's UTM tile grid, in
+bounded memory.
+
+Each tile keeps, per pixel, the ``top_n`` best (intensity, score) candidates of the frames
+that covered it (all the paper's robust blending ever uses), each tagged with the frame
+that gave it, so a frame whose pose moves can be taken out and put back where it now
+belongs. Intensities are stored as uint8, scores as uint16 (score x 65535; 0 = empty
+slot) and tags as uint16 (frame index modulo 65535: unique among the frames that can
+still move): 80 bytes a pixel, 5.2 MB for a 256 x 256 tile.
+
+A tile the boat has left behind (no frame for ``evict_after_s`` of survey time) is
+handed to a ``TileSpill`` — on disk in the daemon, in memory in tests — and leaves
+memory; when a later lane comes back over it, it is loaded again. Memory therefore
+depends on the area being worked, not on the survey's length.
+
+Taking a frame out cannot bring back a weaker candidate it had pushed out of a full
+stack; the live map accepts that small loss, and the survey-end pass renders from scratch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.blend import BlendParams, robust_blend
+from mapping.fmt import SonarGrid
+from mapping.mosaic import SonarPose, TileGrid, TileKey, footprint_bounds, tile_box, warp_to_tile
+
+FloatImage = npt.NDArray[np.float32]
+NO_FRAME = np.uint16(0xFFFF)
+
+
+def quantise_score(score: FloatImage) -> npt.NDArray[np.uint16]:
+    """Scores in (0, 1] to 1..65535 (0 stays 0: an empty slot)."""
+    q = np.rint(np.clip(score, 0.0, 1.0) * 65535.0)
+    return np.where(score > 0.0, np.maximum(q, 1.0), 0.0).astype(np.uint16)
+
+
+class TileSpill(Protocol):
+    """Where tiles go when they leave memory."""
+
+    def save(self, key: TileKey, arrays: dict[str, npt.NDArray[np.generic]]) -> None: ...
+
+    def load(self, key: TileKey) -> dict[str, npt.NDArray[np.generic]] | None: ...
+
+    def keys(self) -> Iterable[TileKey]: ...
+
+
+class MemorySpill:
+    """A ``TileSpill`` that keeps spilled tiles compressed in memory (tests, bench)."""
+
+    def __init__(self) -> None:
+        self._store: dict[TileKey, dict[str, npt.NDArray[np.generic]]] = {}
+
+    def save(self, key: TileKey, arrays: dict[str, npt.NDArray[np.generic]]) -> None:
+        self._store[key] = {k: v.copy() for k, v in arrays.items()}
+
+    def load(self, key: TileKey) -> dict[str, npt.NDArray[np.generic]] | None:
+        return self._store.get(key)
+
+    def keys(self) -> Iterable[TileKey]:
+        return list(self._store)
+
+
+@dataclass
+class Tile:
+    """One tile's candidate stacks and bookkeeping. Stacks are slot-major (N, rows,
+    cols): the per-pixel min over the slots is then N whole-plane operations, which numpy
+    vectorises well, where a reduction over a short last axis does not."""
+
+    key: TileKey
+    intensity: npt.NDArray[np.uint8]
+    score: npt.NDArray[np.uint16]
+    frame: npt.NDArray[np.uint16]
+    version: int = 0
+    last_touch: float = 0.0
+    dirty: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) to render
+    rendered: npt.NDArray[np.uint8] | None = None  # last rendered values, 0 = no data
+    boxes: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)
+    """Where each frame that may still move put its candidates (row0, row1, col0, col1)."""
+
+    @classmethod
+    def empty(cls, key: TileKey, size: int, n: int) -> Tile:
+        return cls(
+            key,
+            np.zeros((n, size, size), np.uint8),
+            np.zeros((n, size, size), np.uint16),
+            np.full((n, size, size), NO_FRAME, np.uint16),
+        )
+
+    def mark_box(self, box: tuple[int, int, int, int]) -> None:
+        """Note that pixels in ``box`` changed and need rendering."""
+        if self.dirty is None:
+            self.dirty = box
+        else:
+            d = self.dirty
+            self.dirty = (
+                min(d[0], box[0]),
+                max(d[1], box[1]),
+                min(d[2], box[2]),
+                max(d[3], box[3]),
+            )
+
+    @property
+    def nbytes(self) -> int:
+        extra = 0 if self.rendered is None else self.rendered.nbytes
+        return self.intensity.nbytes + self.score.nbytes + self.frame.nbytes + extra
+
+
+@dataclass(frozen=True, slots=True)
+class TileImage:
+    """A rendered tile: grey values 1..255 with 0 = no data, and its version."""
+
+    key: TileKey
+    values: npt.NDArray[np.uint8]
+    version: int
+
+
+class TileStore:
+    """The live mosaic: tiles created, updated, rendered, spilled and reloaded on demand."""
+
+    def __init__(
+        self,
+        tiles: TileGrid,
+        params: BlendParams | None = None,
+        spill: TileSpill | None = None,
+        evict_after_s: float = 20.0,
+    ) -> None:
+        self.grid = tiles
+        self.params = params or BlendParams()
+        self.spill: TileSpill = spill or MemorySpill()
+        self.evict_after_s = evict_after_s
+        self.active: dict[TileKey, Tile] = {}
+        self.versions: dict[TileKey, int] = {}
+        self.spilled = 0
+        self.reloaded = 0
+        # s^gamma for every quantised score.
+        levels = np.arange(65536, dtype=np.float64) / 65535.0
+        self._weight_lut = (levels**self.params.gamma).astype(np.float32)
+
+    # -- tiles in and out of memory -------------------------------------------------
+    def tile(self, key: TileKey) -> Tile:
+        tile = self.active.get(key)
+        if tile is not None:
+            return tile
+        stored = self.spill.load(key)
+        if stored is None:
+            tile = Tile.empty(key, self.grid.tile_px, self.params.top_n)
+        else:
+            tile = Tile(
+                key,
+                np.asarray(stored["intensity"], np.uint8),
+                np.asarray(stored["score"], np.uint16),
+                np.asarray(stored["frame"], np.uint16),
+                rendered=np.asarray(stored["rendered"], np.uint8),
+            )
+            self.reloaded += 1
+        tile.version = self.versions.get(key, 0)
+        self.active[key] = tile
+        return tile
+
+    def evict_idle(self, now: float, keep: set[TileKey] | None = None) -> list[TileImage]:
+        """Spill the tiles no frame has touched for ``evict_after_s`` (rendering them one
+        last time if they changed); returns those final renders."""
+        out = []
+        for key in [k for k, t in self.active.items() if now - t.last_touch > self.evict_after_s]:
+            tile = self.active[key]
+            if keep is not None and key in keep:
+                continue
+            if tile.dirty is not None or tile.rendered is None:
+                out.append(self.render(key))
+            assert tile.rendered is not None
+            self.spill.save(
+                key,
+                {
+                    "intensity": tile.intensity,
+                    "score": tile.score,
+                    "frame": tile.frame,
+                    "rendered": tile.rendered,
+                },
+            )
+            del self.active[key]
+            self.spilled += 1
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        return sum(t.nbytes for t in self.active.values())
+
+    # -- frames in and out ----------------------------------------------------------
+    def insert(
+        self,
+        frame_index: int,
+        image: FloatImage,
+        score: FloatImage,
+        mask: npt.NDArray[np.bool_],
+        grid: SonarGrid,
+        pose: SonarPose,
+        time: float,
+    ) -> list[TileKey]:
+        """Offer one frame's pixels at ``pose`` to the tiles it covers."""
+        layers = np.dstack([image, score, mask.astype(np.float32)])
+        tag = np.uint16(frame_index % 0xFFFF)
+        bounds = footprint_bounds(grid, mask, pose)
+        touched = []
+        for key in self.grid.tiles_covering(*bounds):
+            box = tile_box(self.grid, key, bounds)
+            if box is None:
+                continue
+            warped = warp_to_tile(layers, grid, pose, self.grid, key, box)
+            # Only pixels wholly inside the fan: interpolation across the fan's edge would
+            # mix in the zeros outside it.
+            valid = (warped[..., 2] >= 0.999) & (warped[..., 1] > 0.0)
+            if not valid.any():
+                continue
+            tile = self.tile(key)
+            r0, r1, c0, c1 = box
+            scores = quantise_score(warped[..., 1])
+            values = np.clip(np.rint(warped[..., 0] * 255.0), 0, 255).astype(np.uint8)
+            slot_scores = tile.score[:, r0:r1, c0:c1]
+            weakest = slot_scores.min(axis=0)
+            todo = valid & (scores > weakest)
+            # Into the first slot holding the weakest candidate, plane by plane.
+            for k in range(slot_scores.shape[0]):
+                if not todo.any():
+                    break
+                here = todo & (slot_scores[k] == weakest)
+                np.copyto(slot_scores[k], scores, where=here)
+                np.copyto(tile.intensity[k, r0:r1, c0:c1], values, where=here)
+                np.copyto(tile.frame[k, r0:r1, c0:c1], tag, where=here)
+                todo &= ~here
+            tile.boxes[frame_index] = box
+            tile.last_touch = max(tile.last_touch, time)
+            tile.mark_box(box)
+            touched.append(key)
+        return touched
+
+    def remove(self, frame_index: int, keys: Iterable[TileKey]) -> None:
+        """Take a frame's candidates out of the given tiles."""
+        tag = np.uint16(frame_index % 0xFFFF)
+        for key in keys:
+            tile = self.tile(key)
+            box = tile.boxes.pop(frame_index, None)
+            if box is None:
+                continue
+            r0, r1, c0, c1 = box
+            frames = tile.frame[:, r0:r1, c0:c1]
+            hit = frames == tag
+            tile.score[:, r0:r1, c0:c1][hit] = 0
+            tile.intensity[:, r0:r1, c0:c1][hit] = 0
+            frames[hit] = NO_FRAME
+            tile.mark_box(box)
+
+    def settle(self, frame_index: int, keys: Iterable[TileKey]) -> None:
+        """A frame will not move again: forget where it went."""
+        for key in keys:
+            tile = self.active.get(key)
+            if tile is not None:
+                tile.boxes.pop(frame_index, None)
+
+    # -- rendering ------------------------------------------------------------------
+    def render(self, key: TileKey) -> TileImage:
+        """Blend the tile's changed region; the version grows with each render."""
+        tile = self.tile(key)
+        size = self.grid.tile_px
+        if tile.rendered is None:
+            tile.rendered = np.zeros((size, size), np.uint8)
+            box = (0, size, 0, size)
+        else:
+            box = tile.dirty or (0, 0, 0, 0)
+        r0, r1, c0, c1 = box
+        if r1 > r0 and c1 > c0:
+            # Pixel-major for the blending: (rows, cols, N).
+            intensity = np.moveaxis(tile.intensity[:, r0:r1, c0:c1], 0, -1).astype(
+                np.float32
+            ) * np.float32(1 / 255)
+            quantised = np.moveaxis(tile.score[:, r0:r1, c0:c1], 0, -1)
+            score = quantised.astype(np.float32) * np.float32(1 / 65535)
+            if self.params.method == "average":
+                present = score > 0
+                count = present.sum(axis=-1)
+                covered = count > 0
+                blended = np.where(
+                    covered, (intensity * present).sum(axis=-1) / np.maximum(count, 1), 0.0
+                ).astype(np.float32)
+            else:
+                blended, covered = robust_blend(
+                    intensity, score, self.params, self._weight_lut[quantised]
+                )
+            values = np.clip(np.rint(blended * 254.0) + 1.0, 1, 255).astype(np.uint8)
+            values[~covered] = 0
+            tile.rendered[r0:r1, c0:c1] = values
+        tile.dirty = None
+        tile.version += 1
+        self.versions[key] = tile.version
+        return TileImage(key, tile.rendered.copy(), tile.version)
+
+    def render_dirty(self) -> list[TileImage]:
+        return [self.render(k) for k, t in list(self.active.items()) if t.dirty is not None]
+
+    def all_keys(self) -> list[TileKey]:
+        return sorted(set(self.active) | set(self.spill.keys()))
+
+    def rendered_tiles(self) -> Iterator[TileImage]:
+        """Every tile's latest rendering, active or spilled (rendering what changed)."""
+        for key in self.all_keys():
+            tile = self.active.get(key)
+            if tile is not None:
+                yield (
+                    self.render(key)
+                    if tile.dirty or tile.rendered is None
+                    else TileImage(key, tile.rendered.copy(), tile.version)
+                )
+                continue
+            stored = self.spill.load(key)
+            if stored is not None:
+                yield TileImage(
+                    key, np.asarray(stored["rendered"], np.uint8), self.versions.get(key, 0)
+                )
+
+
+def alpha_of(values: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """The alpha channel of a rendered tile: 255 where there is data, 0 where not."""
+    return np.where(values > 0, 255, 0).astype(np.uint8)

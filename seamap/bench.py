@@ -1,0 +1,207 @@
+"""``seamap bench``: the streaming engine in-process over a simulated survey, measured.
+
+The simulator renders the pings and navigation in the same process (``tools.sim.stream``)
+and only the time spent inside the engine counts. Reported: milliseconds per frame per
+stage and in total, frames per second, the multiple of real time at 10 Hz, peak and
+current memory (RSS), the growth of memory per thousand frames (a straight line fitted
+to the second half of the run, when the working set has settled), and the latency from
+a ping's arrival to the update of its tiles (survey time the engine held the ping and
+waited to render, plus the time it took to process).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mapping.samples import Ping
+from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
+
+
+def rss_mb() -> tuple[float, float]:
+    """(current, peak) resident memory of this process in MB, from /proc."""
+    current = peak = math.nan
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    current = int(line.split()[1]) / 1024.0
+                elif line.startswith("VmHWM:"):
+                    peak = int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return current, peak
+
+
+@dataclass
+class BenchResult:
+    scenario: str
+    frames: int
+    engine_s: float
+    stages_ms: dict[str, float]
+    rss_start_mb: float
+    rss_end_mb: float
+    peak_rss_mb: float
+    rss_growth_mb_per_1000: float
+    latency_p50_s: float
+    latency_p95_s: float
+    tiles_published: int
+    frames_mapped: int
+    frames_rejected: int
+    frames_skipped: int
+    memory_samples: list[tuple[int, float]] = field(default_factory=list)
+    final_pass_s: float | None = None
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.engine_s if self.engine_s > 0 else math.inf
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "scenario": self.scenario,
+            "frames": self.frames,
+            "frames_mapped": self.frames_mapped,
+            "frames_rejected": self.frames_rejected,
+            "frames_skipped": self.frames_skipped,
+            "ms_per_frame": 1000.0 * self.engine_s / max(self.frames, 1),
+            "frames_per_second": self.fps,
+            "realtime_factor_10hz": self.fps / 10.0,
+            "peak_rss_mb": self.peak_rss_mb,
+            "rss_start_mb": self.rss_start_mb,
+            "rss_end_mb": self.rss_end_mb,
+            "rss_growth_mb_per_1000_frames": self.rss_growth_mb_per_1000,
+            "latency_p50_s": self.latency_p50_s,
+            "latency_p95_s": self.latency_p95_s,
+            "tiles_published": self.tiles_published,
+            "stages": self.stages_ms,
+            "final_pass_s": self.final_pass_s,
+        }
+
+
+def run_bench(
+    scenario: str,
+    seed: int,
+    max_pings: int | None,
+    overrides: dict[str, Any],
+    params: StreamingParams | None = None,
+    final_pass: bool = False,
+    progress: Any = None,
+) -> BenchResult:
+    from seamap.replay import mount_from_config, pipeline_params
+    from tools.sim.stream import survey_events
+
+    if max_pings is not None:
+        overrides = {**overrides, "max_pings": max_pings}
+    stream = survey_events(scenario, seed, **overrides)
+    config = stream.site_config
+    params = params or StreamingParams(pipeline=pipeline_params(config))
+    ping_time: list[float] = []
+    latencies: list[float] = []
+    tiles_published = 0
+    engine: StreamingEngine
+
+    def on_tile(update: TileUpdate) -> None:
+        nonlocal tiles_published
+        tiles_published += 1
+        released = engine._released  # survey time at which this render happened
+        for frame in update.frames:
+            # A frame's first appearance counts; later ones are re-blends.
+            if frame < len(ping_time) and frame not in seen:
+                seen.add(frame)
+                latencies.append(max(released - ping_time[frame], 0.0) + processing[frame])
+
+    processing: list[float] = []
+    seen: set[int] = set()
+    engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile)
+    rss_start, _ = rss_mb()
+    memory: list[tuple[int, float]] = []
+    engine_s = 0.0
+    frames = 0
+    for _, sample in stream.events:
+        started = time.perf_counter()
+        engine.add(sample)  # type: ignore[arg-type]
+        spent = time.perf_counter() - started
+        engine_s += spent
+        if isinstance(sample, Ping):
+            frames += 1
+            ping_time.append(sample.time)
+            processing.append(spent)
+            if frames % 200 == 0:
+                memory.append((frames, rss_mb()[0]))
+                if progress is not None:
+                    progress("bench", frames, stream.ping_count)
+    started = time.perf_counter()
+    engine.flush()
+    engine_s += time.perf_counter() - started
+    rss_end, peak = rss_mb()
+    memory.append((frames, rss_end))
+    growth = math.nan
+    half = [m for m in memory if m[0] >= frames / 2]
+    if len(half) >= 3:
+        x = np.array([m[0] for m in half], float)
+        y = np.array([m[1] for m in half], float)
+        growth = float(np.polyfit(x, y, 1)[0] * 1000.0)
+    stats = engine.stats
+    stages = {k: 1000.0 * v / max(frames, 1) for k, v in sorted(stats.stage_s.items())}
+    final_s: float | None = None
+    if final_pass:
+
+        def pings_again() -> Iterator[Ping]:
+            for _, sample in survey_events(scenario, seed, **overrides).events:
+                if isinstance(sample, Ping):
+                    yield sample
+
+        started = time.perf_counter()
+        engine.finish(pings_again)
+        final_s = time.perf_counter() - started
+    lat = np.array(latencies) if latencies else np.array([math.nan])
+    return BenchResult(
+        scenario=scenario,
+        frames=frames,
+        engine_s=engine_s,
+        stages_ms=stages,
+        rss_start_mb=rss_start,
+        rss_end_mb=rss_end,
+        peak_rss_mb=peak,
+        rss_growth_mb_per_1000=growth,
+        latency_p50_s=float(np.percentile(lat, 50)),
+        latency_p95_s=float(np.percentile(lat, 95)),
+        tiles_published=tiles_published,
+        frames_mapped=stats.frames_mapped,
+        frames_rejected=stats.frames_rejected,
+        frames_skipped=stats.frames_skipped,
+        memory_samples=memory,
+        final_pass_s=final_s,
+    )
+
+
+def format_table(result: BenchResult) -> str:
+    j = result.as_json()
+    lines = [
+        f"seamap bench: {result.scenario}, {result.frames} frames "
+        f"({result.frames_mapped} mapped, {result.frames_rejected} rejected, "
+        f"{result.frames_skipped} skipped)",
+        "",
+        f"  {'stage':<14}{'ms/frame':>10}",
+    ]
+    for stage, ms in result.stages_ms.items():
+        lines.append(f"  {stage:<14}{ms:>10.2f}")
+    lines += [
+        f"  {'total':<14}{j['ms_per_frame']:>10.2f}",
+        "",
+        f"  frames per second        {j['frames_per_second']:.1f}",
+        f"  real time at 10 Hz       x{j['realtime_factor_10hz']:.1f}",
+        f"  latency p50 / p95        {j['latency_p50_s']:.2f} s / {j['latency_p95_s']:.2f} s",
+        f"  memory start / end / peak {j['rss_start_mb']:.0f} / {j['rss_end_mb']:.0f} / "
+        f"{j['peak_rss_mb']:.0f} MB",
+        f"  memory growth            {j['rss_growth_mb_per_1000_frames']:.2f} MB per 1000 frames",
+        f"  tiles published          {j['tiles_published']}",
+    ]
+    if result.final_pass_s is not None:
+        lines.append(f"  survey-end pass          {result.final_pass_s:.1f} s")
+    return "\n".join(lines)

@@ -1,0 +1,61 @@
+"""``seamap bench [--json]``: throughput, latency and memory of the streaming engine."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from seamap.errors import SeamapError
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "bench",
+        help="measure the streaming engine over a simulated survey (speed, latency, memory)",
+        description=(
+            "Run the streaming mapping engine in this process over a simulated survey and "
+            "report milliseconds per frame per stage, frames per second, the multiple of "
+            "real time at 10 Hz, latency and memory. OpenCV runs on one thread."
+        ),
+    )
+    parser.add_argument("--scenario", default="quadrats", help="simulator scenario")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--pings", type=int, default=None, help="stop after N pings")
+    parser.add_argument("--beams", type=int, default=None, help="beams per ping")
+    parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
+    parser.add_argument(
+        "--final", action="store_true", help="also time the survey-end pass (renders twice)"
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from seamap.bench import format_table, run_bench
+
+    if args.pings is not None and args.pings < 1:
+        raise SeamapError(f"--pings must be at least 1, got {args.pings}")
+    cv2.setNumThreads(args.threads)
+    overrides: dict[str, Any] = {}
+    if args.beams is not None:
+        overrides["n_beams"] = args.beams
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if sys.stderr.isatty():
+            sys.stderr.write(f"\r{stage}: {done}/{total} frames ")
+            sys.stderr.flush()
+
+    result = run_bench(
+        args.scenario, args.seed, args.pings, overrides, final_pass=args.final, progress=progress
+    )
+    if sys.stderr.isatty():
+        sys.stderr.write("\r" + " " * 50 + "\r")
+    if args.json:
+        print(json.dumps(result.as_json(), sort_keys=True))
+    else:
+        print(format_table(result))
+    return 0

@@ -1,0 +1,100 @@
+"""The tile store: top-N candidates per pixel, frames taken out and put back, versions,
+spilling and reloading."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapping.blend import BlendParams
+from mapping.fmt import SonarGrid
+from mapping.mosaic import SonarPose, TileGrid
+from mapping.tiles import MemorySpill, TileStore
+
+TILES = TileGrid(res_m=0.02, tile_px=64)
+GRID = SonarGrid(shape=(32, 32), res_m=0.02, forward_max_m=0.64, starboard_min_m=0.0)
+
+
+def frame(value: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    image = np.full(GRID.shape, value, np.float32)
+    score = np.full(GRID.shape, 0.5, np.float32)
+    return image, score, np.ones(GRID.shape, bool)
+
+
+def pose(east: float, north: float) -> SonarPose:
+    # Boresight north: forward = north, starboard = east.
+    return SonarPose(east, north, 0.0)
+
+
+def test_a_frame_lands_in_the_tile_under_it_and_renders() -> None:
+    store = TileStore(TILES)
+    image, score, mask = frame(0.5)
+    touched = store.insert(0, image, score, mask, GRID, pose(0.2, 0.1), time=0.0)
+    assert touched == [(0, 0)]
+    rendered = store.render((0, 0))
+    assert rendered.version == 1
+    covered = rendered.values > 0
+    # 32 x 32 pixels of the frame, less its interpolated edge.
+    assert 28 * 28 <= covered.sum() <= 32 * 32
+    assert abs(int(np.median(rendered.values[covered])) - round(0.5 * 254 + 1)) <= 1
+    # North-up: the frame spans northings 0.10..0.74 m, i.e. the tile's lower rows.
+    rows = np.flatnonzero(covered.any(axis=1))
+    assert rows.min() >= (1.28 - 0.76) / 0.02 - 1 and rows.max() <= (1.28 - 0.10) / 0.02
+
+
+def test_only_the_best_candidates_are_kept_and_a_moved_frame_follows_its_pose() -> None:
+    store = TileStore(TILES, BlendParams(top_n=2))
+    for index, value in enumerate((0.2, 0.4, 0.6)):
+        image, score, mask = frame(value)
+        score *= 1 + index  # later frames score higher
+        store.insert(index, image, score, mask, GRID, pose(0.2, 0.1), time=float(index))
+    tile = store.tile((0, 0))
+    centre = (40, 25)
+    assert sorted(tile.frame[(slice(None), *centre)].tolist()) == [1, 2]
+    first = store.render((0, 0))
+    # Frame 2 moves 10 cm east: take it out and put it back there; the tile's version grows.
+    store.remove(2, [(0, 0)])
+    image, score, mask = frame(0.6)
+    store.insert(2, image, score * 3, mask, GRID, pose(0.3, 0.1), time=3.0)
+    second = store.render((0, 0))
+    assert second.version > first.version
+    assert not np.array_equal(first.values, second.values)
+    assert 2 in tile.boxes
+
+
+def test_idle_tiles_leave_memory_and_come_back() -> None:
+    spill = MemorySpill()
+    store = TileStore(TILES, spill=spill, evict_after_s=5.0)
+    image, score, mask = frame(0.5)
+    store.insert(0, image, score, mask, GRID, pose(0.2, 0.1), time=0.0)
+    before = store.render((0, 0))
+    store.evict_idle(now=3.0)
+    assert (0, 0) in store.active
+    store.evict_idle(now=10.0)
+    assert (0, 0) not in store.active and store.nbytes == 0
+    assert list(spill.keys()) == [(0, 0)]
+    # Listed and served from the spill while away...
+    assert [t.key for t in store.rendered_tiles()] == [(0, 0)]
+    # ... and back in memory, candidates intact, when a later lane covers it again.
+    image2, score2, mask2 = frame(0.9)
+    store.insert(1, image2, score2, mask2, GRID, pose(0.88, 0.1), time=20.0)
+    assert (0, 0) in store.active and store.reloaded == 1
+    after = store.render((0, 0))
+    assert after.version > before.version
+    np.testing.assert_array_equal(after.values[before.values > 0], before.values[before.values > 0])
+
+
+def test_memory_is_bounded_by_the_tiles_being_worked() -> None:
+    store = TileStore(TILES, evict_after_s=2.0)
+    image, score, mask = frame(0.5)
+    peak = 0
+    for k in range(400):  # a long straight line east, 5 cm a frame
+        store.insert(k, image, score, mask, GRID, pose(0.05 * k, 0.1), time=0.1 * k)
+        if k % 10 == 0:
+            store.render_dirty()
+            store.evict_idle(0.1 * k)
+        peak = max(peak, len(store.active))
+    assert len(store.all_keys()) >= 15
+    assert peak <= 6
+    assert math.isfinite(store.nbytes)
