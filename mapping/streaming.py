@@ -71,6 +71,11 @@ class StreamingParams:
     """A tile no frame has touched for this long leaves memory."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
+    reuse_registrations: bool = False
+    """The survey-end pass reuses the live registrations instead of registering every
+    frame again against the smoothed EKF. Faster (no FMT at the end), but the live ones
+    were guided by the live filter, so the result differs from an offline single-stage
+    run by up to a centimetre; re-registering makes the two identical."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -490,8 +495,9 @@ class StreamingEngine:
         spill: TileSpill | None = None,
     ) -> SurveyResult:
         """The survey-end pass over every frame (``pings()`` yields them again, in
-        order): the smoothed EKF, the live registrations, loop closures, the final mode's
-        optimisation, and every tile re-rendered; tile versions carry on growing."""
+        order): the smoothed EKF, the registrations (again, or the live ones), loop
+        closures, the final mode's optimisation, and every tile re-rendered; tile versions
+        carry on growing."""
         self.flush()
         nav = NavSamples(self._imu.samples(), self._fixes, self._headings, self._attitudes)
         result = map_survey(
@@ -501,7 +507,7 @@ class StreamingEngine:
             self.params.pipeline,
             self.params.final_mode,
             progress,
-            registrations=self.outcomes,
+            registrations=self.outcomes if self.params.reuse_registrations else None,
             spill=spill,
         )
         # Continue the live versions so a subscriber sees every final tile as newer.
