@@ -70,30 +70,6 @@ def sonar_to_utm(pose: SonarPose) -> npt.NDArray[np.float64]:
     return np.array([[s, c, pose.east], [c, -s, pose.north], [0.0, 0.0, 1.0]])
 
 
-def footprint_bounds(
-    grid: SonarGrid, mask: npt.NDArray[np.bool_], pose: SonarPose
-) -> tuple[float, float, float, float]:
-    """(west, south, east, north) UTM bounds of the fan's bounding box for a sonar pose."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return (pose.east, pose.north, pose.east, pose.north)
-    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    corners = np.array([[c0, c1, c0, c1], [r0, r0, r1, r1], [1, 1, 1, 1]], float) - [
-        [0.5],
-        [0.5],
-        [0.0],
-    ]
-    world = sonar_to_utm(pose) @ grid.pixel_to_metric() @ corners
-    margin = grid.res_m * 2
-    return (
-        float(world[0].min()) - margin,
-        float(world[1].min()) - margin,
-        float(world[0].max()) + margin,
-        float(world[1].max()) + margin,
-    )
-
-
 def tile_box(
     tiles: TileGrid, key: TileKey, bounds: tuple[float, float, float, float]
 ) -> tuple[int, int, int, int] | None:

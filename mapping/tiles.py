@@ -28,10 +28,18 @@ import numpy.typing as npt
 
 from mapping.blend import BlendParams, robust_blend
 from mapping.fmt import SonarGrid
-from mapping.mosaic import SonarPose, TileGrid, TileKey, footprint_bounds, tile_box, warp_to_tile
+from mapping.mosaic import (
+    SonarPose,
+    TileGrid,
+    TileKey,
+    sonar_to_utm,
+    tile_box,
+    warp_to_tile,
+)
 
 FloatImage = npt.NDArray[np.float32]
 NO_FRAME = np.uint16(0xFFFF)
+FanPoints = npt.NDArray[np.float64]
 
 
 def quantise_score(score: FloatImage) -> npt.NDArray[np.uint16]:
@@ -78,7 +86,7 @@ class Tile:
     frame: npt.NDArray[np.uint16]
     version: int = 0
     last_touch: float = 0.0
-    dirty: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) to render
+    changed: npt.NDArray[np.bool_] | None = None  # pixels to render again (None: none)
     rendered: npt.NDArray[np.uint8] | None = None  # last rendered values, 0 = no data
     boxes: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)
     """Where each frame that may still move put its candidates (row0, row1, col0, col1)."""
@@ -92,18 +100,18 @@ class Tile:
             np.full((n, size, size), NO_FRAME, np.uint16),
         )
 
-    def mark_box(self, box: tuple[int, int, int, int]) -> None:
-        """Note that pixels in ``box`` changed and need rendering."""
-        if self.dirty is None:
-            self.dirty = box
-        else:
-            d = self.dirty
-            self.dirty = (
-                min(d[0], box[0]),
-                max(d[1], box[1]),
-                min(d[2], box[2]),
-                max(d[3], box[3]),
-            )
+    @property
+    def dirty(self) -> bool:
+        return self.changed is not None
+
+    def mark(self, box: tuple[int, int, int, int], pixels: npt.NDArray[np.bool_]) -> None:
+        """Note that ``pixels`` (a mask over ``box``) changed and need rendering."""
+        if not pixels.any():
+            return
+        if self.changed is None:
+            self.changed = np.zeros(self.score.shape[1:], bool)
+        r0, r1, c0, c1 = box
+        self.changed[r0:r1, c0:c1] |= pixels
 
     @property
     def nbytes(self) -> int:
@@ -138,6 +146,7 @@ class TileStore:
         self.versions: dict[TileKey, int] = {}
         self.spilled = 0
         self.reloaded = 0
+        self._fan_samples: dict[int, tuple[npt.NDArray[np.bool_], FanPoints, float]] = {}
         # s^gamma for every quantised score.
         levels = np.arange(65536, dtype=np.float64) / 65535.0
         self._weight_lut = (levels**self.params.gamma).astype(np.float32)
@@ -171,7 +180,7 @@ class TileStore:
             tile = self.active[key]
             if keep is not None and key in keep:
                 continue
-            if tile.dirty is not None or tile.rendered is None:
+            if tile.dirty or tile.rendered is None:
                 out.append(self.render(key))
             assert tile.rendered is not None
             self.spill.save(
@@ -192,6 +201,52 @@ class TileStore:
         return sum(t.nbytes for t in self.active.values())
 
     # -- frames in and out ----------------------------------------------------------
+    def _boxes(
+        self, grid: SonarGrid, mask: npt.NDArray[np.bool_], pose: SonarPose
+    ) -> dict[TileKey, tuple[int, int, int, int]]:
+        """For each tile the fan reaches, the box of its pixels the fan can cover: from a
+        sparse sample of the fan's pixels, so a fan seen at 45 degrees does not drag in
+        the whole square around it."""
+        samples = self._fan_samples.get(id(mask))
+        if samples is None or samples[0] is not mask:
+            step = 6
+            rows, cols = np.nonzero(mask[::step, ::step])
+            points = np.vstack([cols * step, rows * step, np.ones_like(rows)]).astype(float)
+            samples = (mask, grid.pixel_to_metric() @ points, step * grid.res_m)
+            self._fan_samples = {id(mask): samples}
+        _, metric, spacing = samples
+        world = sonar_to_utm(pose) @ metric
+        x, y = world[0], world[1]
+        t = self.grid.tile_m
+        margin = spacing + 2 * self.grid.res_m
+        keys: set[TileKey] = set()
+        for dx in (-margin, margin):
+            for dy in (-margin, margin):
+                cols = np.floor((x + dx) / t).astype(np.int64).tolist()
+                rows = np.floor((y + dy) / t).astype(np.int64).tolist()
+                keys.update(zip(cols, rows, strict=True))
+        boxes: dict[TileKey, tuple[int, int, int, int]] = {}
+        for key in keys:
+            x0, y0 = key[0] * t, key[1] * t
+            near = (
+                (x >= x0 - margin)
+                & (x < x0 + t + margin)
+                & (y >= y0 - margin)
+                & (y < y0 + t + margin)
+            )
+            if not near.any():
+                continue
+            bounds = (
+                float(x[near].min()) - margin,
+                float(y[near].min()) - margin,
+                float(x[near].max()) + margin,
+                float(y[near].max()) + margin,
+            )
+            box = tile_box(self.grid, key, bounds)
+            if box is not None:
+                boxes[key] = box
+        return boxes
+
     def insert(
         self,
         frame_index: int,
@@ -205,12 +260,8 @@ class TileStore:
         """Offer one frame's pixels at ``pose`` to the tiles it covers."""
         layers = np.dstack([image, score, mask.astype(np.float32)])
         tag = np.uint16(frame_index % 0xFFFF)
-        bounds = footprint_bounds(grid, mask, pose)
         touched = []
-        for key in self.grid.tiles_covering(*bounds):
-            box = tile_box(self.grid, key, bounds)
-            if box is None:
-                continue
+        for key, box in self._boxes(grid, mask, pose).items():
             warped = warp_to_tile(layers, grid, pose, self.grid, key, box)
             # Only pixels wholly inside the fan: interpolation across the fan's edge would
             # mix in the zeros outside it.
@@ -225,6 +276,7 @@ class TileStore:
             weakest = slot_scores.min(axis=0)
             todo = valid & (scores > weakest)
             # Into the first slot holding the weakest candidate, plane by plane.
+            tile.mark(box, todo)
             for k in range(slot_scores.shape[0]):
                 if not todo.any():
                     break
@@ -235,7 +287,6 @@ class TileStore:
                 todo &= ~here
             tile.boxes[frame_index] = box
             tile.last_touch = max(tile.last_touch, time)
-            tile.mark_box(box)
             touched.append(key)
         return touched
 
@@ -253,7 +304,7 @@ class TileStore:
             tile.score[:, r0:r1, c0:c1][hit] = 0
             tile.intensity[:, r0:r1, c0:c1][hit] = 0
             frames[hit] = NO_FRAME
-            tile.mark_box(box)
+            tile.mark(box, hit.any(axis=0))
 
     def settle(self, frame_index: int, keys: Iterable[TileKey]) -> None:
         """A frame will not move again: forget where it went."""
@@ -264,21 +315,20 @@ class TileStore:
 
     # -- rendering ------------------------------------------------------------------
     def render(self, key: TileKey) -> TileImage:
-        """Blend the tile's changed region; the version grows with each render."""
+        """Blend the tile's changed pixels; the version grows with each render."""
         tile = self.tile(key)
         size = self.grid.tile_px
         if tile.rendered is None:
             tile.rendered = np.zeros((size, size), np.uint8)
-            box = (0, size, 0, size)
+            rows, cols = np.nonzero((tile.score > 0).any(axis=0))
+        elif tile.changed is not None:
+            rows, cols = np.nonzero(tile.changed)
         else:
-            box = tile.dirty or (0, 0, 0, 0)
-        r0, r1, c0, c1 = box
-        if r1 > r0 and c1 > c0:
-            # Pixel-major for the blending: (rows, cols, N).
-            intensity = np.moveaxis(tile.intensity[:, r0:r1, c0:c1], 0, -1).astype(
-                np.float32
-            ) * np.float32(1 / 255)
-            quantised = np.moveaxis(tile.score[:, r0:r1, c0:c1], 0, -1)
+            rows = cols = np.zeros(0, np.intp)
+        if rows.size:
+            # Pixel-major candidate lists (pixels, N) of just the pixels to render.
+            intensity = tile.intensity[:, rows, cols].T.astype(np.float32) * np.float32(1 / 255)
+            quantised = tile.score[:, rows, cols].T
             score = quantised.astype(np.float32) * np.float32(1 / 65535)
             if self.params.method == "average":
                 present = score > 0
@@ -293,14 +343,14 @@ class TileStore:
                 )
             values = np.clip(np.rint(blended * 254.0) + 1.0, 1, 255).astype(np.uint8)
             values[~covered] = 0
-            tile.rendered[r0:r1, c0:c1] = values
-        tile.dirty = None
+            tile.rendered[rows, cols] = values
+        tile.changed = None
         tile.version += 1
         self.versions[key] = tile.version
         return TileImage(key, tile.rendered.copy(), tile.version)
 
     def render_dirty(self) -> list[TileImage]:
-        return [self.render(k) for k, t in list(self.active.items()) if t.dirty is not None]
+        return [self.render(k) for k, t in list(self.active.items()) if t.dirty]
 
     def all_keys(self) -> list[TileKey]:
         return sorted(set(self.active) | set(self.spill.keys()))
