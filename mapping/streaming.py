@@ -28,7 +28,7 @@ import math
 import time as clock
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -54,8 +54,10 @@ class StreamingParams:
     pipeline: PipelineParams = field(default_factory=PipelineParams)
     reorder_s: float = 0.25
     """Samples are held this long (survey time) to be put in time order."""
-    window_frames: int = 100
-    """Accepted frames re-optimised together (10 s at 10 Hz)."""
+    window_frames: int = 30
+    """Accepted frames re-optimised together (3 s at 10 Hz): a fixed-lag smoother over
+    the last six GPS fixes. Longer windows move frames further between their first
+    blend and their final pose, so more of them are blended twice."""
     solve_every: int = 10
     """Re-solve the window every this many accepted frames."""
     move_threshold_m: float = 0.02
@@ -69,6 +71,9 @@ class StreamingParams:
     """Changed tiles are re-rendered at most this often (survey time)."""
     evict_after_s: float = 30.0
     """A tile no frame has touched for this long leaves memory."""
+    live_registration_res_m: float | None = 0.03
+    """Pixel size of the live registrations (None: the pipeline's). 3 cm halves the FFT
+    work; the survey-end pass registers again at the pipeline's full resolution."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
     reuse_registrations: bool = False
@@ -162,7 +167,12 @@ class StreamingEngine:
         self.stats = StreamStats()
         self.frame: LocalFrame | None = None
         self.nav = NavFilter(p.ekf)
-        self.local = LocalRegistration(mount, p.preprocess, p.fmt, p.registration)
+        live_preprocess = p.preprocess
+        if self.params.live_registration_res_m is not None:
+            live_preprocess = replace(
+                p.preprocess, registration_res_m=self.params.live_registration_res_m
+            )
+        self.local = LocalRegistration(mount, live_preprocess, p.fmt, p.registration)
         self.scorer = FeatureScorer(p.blend)
         self.tiles = TileStore(
             TileGrid(p.mosaic_res_m, p.tile_px), p.blend, spill, self.params.evict_after_s

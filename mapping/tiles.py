@@ -59,7 +59,7 @@ class TileSpill(Protocol):
 
 
 class MemorySpill:
-    """A ``TileSpill`` that keeps spilled tiles compressed in memory (tests, bench)."""
+    """A ``TileSpill`` that keeps spilled tiles in memory (tests, short surveys)."""
 
     def __init__(self) -> None:
         self._store: dict[TileKey, dict[str, npt.NDArray[np.generic]]] = {}

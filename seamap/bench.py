@@ -12,15 +12,18 @@ waited to render, plus the time it took to process).
 from __future__ import annotations
 
 import math
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mapping.samples import Ping
 from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
+from seamap.tilespill import DiskSpill
 
 
 def rss_mb() -> tuple[float, float]:
@@ -117,7 +120,10 @@ def run_bench(
 
     processing: list[float] = []
     seen: set[int] = set()
-    engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile)
+    # Tiles the boat leaves go to disk, as on the boat.
+    spill_dir = tempfile.TemporaryDirectory(prefix="seamap-bench-")
+    spill = DiskSpill(Path(spill_dir.name))
+    engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile, spill=spill)
     rss_start, _ = rss_mb()
     memory: list[tuple[int, float]] = []
     engine_s = 0.0
@@ -157,8 +163,10 @@ def run_bench(
                     yield sample
 
         started = time.perf_counter()
-        engine.finish(pings_again)
+        final_spill = DiskSpill(Path(spill_dir.name) / "final")
+        engine.finish(pings_again, spill=final_spill)
         final_s = time.perf_counter() - started
+    spill_dir.cleanup()
     lat = np.array(latencies) if latencies else np.array([math.nan])
     return BenchResult(
         scenario=scenario,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import heapq
 import math
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, replace
@@ -21,9 +22,11 @@ from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.samples import Ping
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
+from mapping.tiles import TileSpill
 from seamap.config import SiteConfig, SonarConfig, load_config
 from seamap.errors import SeamapError
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
+from seamap.tilespill import DiskSpill
 
 
 def mount_from_config(sonar: SonarConfig) -> SonarMount:
@@ -107,11 +110,13 @@ def stream_survey(
     mount: SonarMount,
     params: PipelineParams,
     progress: Callable[[str, int, int], None] | None = None,
+    spill: TileSpill | None = None,
+    final_spill: TileSpill | None = None,
 ) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     """The streaming engine fed with the logs in arrival order (as the daemon would be),
     then its survey-end pass. Returns the final result and the live one (the live poses
     and tiles as they stood before the survey-end pass) with the engine's statistics."""
-    engine = StreamingEngine(mount, StreamingParams(pipeline=params))
+    engine = StreamingEngine(mount, StreamingParams(pipeline=params), spill=spill)
     arrivals: Iterator[Sample] = heapq.merge(
         nav.imu, nav.gnss, nav.heading, nav.attitude, pings(), key=lambda sample: sample.time
     )
@@ -120,7 +125,7 @@ def stream_survey(
         if progress is not None and isinstance(sample, Ping):
             progress("streaming", engine.stats.frames_received, engine.stats.frames_received)
     engine.flush()
-    final = engine.finish(pings, progress)
+    final = engine.finish(pings, progress, final_spill)
     poses = np.array(engine.poses) if engine.poses else np.zeros((0, 3))
     live = replace(
         final,
@@ -151,12 +156,22 @@ def replay(
     pings = ping_source(sonar, skipped)
     mount = mount_from_config(config.sonar)
     live: tuple[SurveyResult, StreamStats] | None = None
+    # Tiles the boat has left wait on disk, so a long survey fits in memory.
+    spill_dir = tempfile.TemporaryDirectory(prefix="seamap-tiles-")
+    spill_root = Path(spill_dir.name)
     try:
         if mode == "streaming":
-            result, live = stream_survey(pings, samples, mount, params, progress)
+            result, live = stream_survey(
+                pings, samples, mount, params, progress,
+                DiskSpill(spill_root / "live"), DiskSpill(spill_root / "final"),
+            )  # fmt: skip
         else:
-            result = map_survey(pings, samples, mount, params, Mode(mode), progress)
+            result = map_survey(
+                pings, samples, mount, params, Mode(mode), progress,
+                spill=DiskSpill(spill_root / "tiles"),
+            )  # fmt: skip
     except ValueError as exc:
+        spill_dir.cleanup()
         raise SeamapError(f"{nav}: {exc}") from None
     if result.frames_read == 0:
         raise SeamapError(f"{sonar}: no sonar pings in the log")
@@ -238,4 +253,5 @@ def replay(
                 truth, live[0], live_image, live_west, live_north, params.mosaic_res_m
             )
     write_report(out / "report.json", report)
+    spill_dir.cleanup()
     return report
