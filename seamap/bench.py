@@ -26,6 +26,16 @@ from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
 from seamap.tilespill import DiskSpill
 
 
+def reset_peak_rss() -> None:
+    """Start the kernel's peak-RSS counter afresh (Linux), so the peak is the engine's and
+    not the simulator's set-up."""
+    try:
+        with open("/proc/self/clear_refs", "w", encoding="ascii") as refs:
+            refs.write("5")
+    except OSError:
+        pass
+
+
 def rss_mb() -> tuple[float, float]:
     """(current, peak) resident memory of this process in MB, from /proc."""
     current = peak = math.nan
@@ -124,6 +134,7 @@ def run_bench(
     spill_dir = tempfile.TemporaryDirectory(prefix="seamap-bench-")
     spill = DiskSpill(Path(spill_dir.name))
     engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile, spill=spill)
+    reset_peak_rss()
     rss_start, _ = rss_mb()
     memory: list[tuple[int, float]] = []
     engine_s = 0.0

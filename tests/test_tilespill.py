@@ -12,7 +12,7 @@ from seamap.tilespill import DiskSpill
 def test_tiles_round_trip_through_disk(tmp_path: Path) -> None:
     spill = DiskSpill(tmp_path / "tiles")
     rng = np.random.default_rng(1)
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "intensity": rng.integers(0, 255, (16, 8, 8), dtype=np.uint8),
         "score": rng.integers(0, 65535, (16, 8, 8), dtype=np.uint16),
         "frame": rng.integers(0, 65535, (16, 8, 8), dtype=np.uint16),
