@@ -371,8 +371,3 @@ class TileStore:
                 yield TileImage(
                     key, np.asarray(stored["rendered"], np.uint8), self.versions.get(key, 0)
                 )
-
-
-def alpha_of(values: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
-    """The alpha channel of a rendered tile: 255 where there is data, 0 where not."""
-    return np.where(values > 0, 255, 0).astype(np.uint8)

@@ -222,11 +222,6 @@ def dump_config(config: SiteConfig) -> str:
     return "\n".join(lines)
 
 
-def replace_section(config: SiteConfig, **sections: Any) -> SiteConfig:
-    """A copy of ``config`` with whole sections replaced (a small convenience for tools)."""
-    return dataclasses.replace(config, **sections)
-
-
 __all__ = [
     "HEADING_SOURCES",
     "IMU_SOURCES",
@@ -239,5 +234,4 @@ __all__ = [
     "config_from_dict",
     "dump_config",
     "load_config",
-    "replace_section",
 ]
