@@ -274,17 +274,17 @@ class TileStore:
             values = np.clip(np.rint(warped[..., 0] * 255.0), 0, 255).astype(np.uint8)
             slot_scores = tile.score[:, r0:r1, c0:c1]
             weakest = slot_scores.min(axis=0)
-            todo = valid & (scores > weakest)
-            # Into the first slot holding the weakest candidate, plane by plane.
-            tile.mark(box, todo)
-            for k in range(slot_scores.shape[0]):
-                if not todo.any():
-                    break
-                here = todo & (slot_scores[k] == weakest)
-                np.copyto(slot_scores[k], scores, where=here)
-                np.copyto(tile.intensity[k, r0:r1, c0:c1], values, where=here)
-                np.copyto(tile.frame[k, r0:r1, c0:c1], tag, where=here)
-                todo &= ~here
+            better = valid & (scores > weakest)
+            tile.mark(box, better)
+            rows, cols = np.nonzero(better)
+            if rows.size:
+                # Each improved pixel's candidate goes into its first slot holding the
+                # weakest one: one gather, one search, one scatter.
+                slot = np.argmax(slot_scores[:, rows, cols] == weakest[rows, cols], axis=0)
+                rows_t, cols_t = rows + r0, cols + c0
+                tile.score[slot, rows_t, cols_t] = scores[rows, cols]
+                tile.intensity[slot, rows_t, cols_t] = values[rows, cols]
+                tile.frame[slot, rows_t, cols_t] = tag
             tile.boxes[frame_index] = box
             tile.last_touch = max(tile.last_touch, time)
             touched.append(key)
