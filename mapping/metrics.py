@@ -208,12 +208,13 @@ def locate_quadrats(
     north: float,
     res_m: float,
     quadrats: Sequence[Quadrat],
-    layout_search_m: float = 2.0,
+    layout_search_m: float = 4.0,
     search_m: float = 0.3,
     bar_m: float = 0.04,
 ) -> list[tuple[float, float, float] | None]:
     """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north): first
-    the whole layout within ``layout_search_m`` of the truth (the georeferencing error),
+    the whole layout within ``layout_search_m`` of the truth (the georeferencing error,
+    a few GPS sigmas),
     then each frame by normalised template matching of a square outline of its side and
     orientation within ``search_m`` of there (less than half the 1 m spacing, so a match
     cannot jump to a neighbour). Returns (east, north, match score) or None per quadrat."""
