@@ -208,20 +208,44 @@ def locate_quadrats(
     north: float,
     res_m: float,
     quadrats: Sequence[Quadrat],
-    layout_search_m: float = 4.0,
+    layout_search_m: float = 2.0,
     search_m: float = 0.3,
     bar_m: float = 0.04,
 ) -> list[tuple[float, float, float] | None]:
     """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north): first
-    the whole layout within ``layout_search_m`` of the truth (the georeferencing error,
-    a few GPS sigmas),
+    the whole layout within ``layout_search_m`` of the truth (the georeferencing error),
     then each frame by normalised template matching of a square outline of its side and
     orientation within ``search_m`` of there (less than half the 1 m spacing, so a match
-    cannot jump to a neighbour). Returns (east, north, match score) or None per quadrat."""
+    cannot jump to a neighbour). A GPS bias of several sigma can put the layout beyond
+    the search: the search is also made twice as wide, and the placement whose frames
+    agree best on the layout's offset (a false placement scatters them) is kept.
+    Returns (east, north, match score) or None per quadrat."""
     image = _filled(mosaic, covered)
-    offset = layout_offset(image, west, north, res_m, quadrats, layout_search_m, bar_m)
-    if offset is None:
-        offset = (0.0, 0.0)
+    best: list[tuple[float, float, float] | None] = [None] * len(quadrats)
+    best_spread = math.inf
+    for search in (layout_search_m, 2 * layout_search_m):
+        offset = layout_offset(image, west, north, res_m, quadrats, search, bar_m) or (0.0, 0.0)
+        found = _locate_each(image, covered, west, north, res_m, quadrats, offset, search_m, bar_m)
+        shifts = np.array(
+            [(f[0] - q.east, f[1] - q.north) for q, f in zip(quadrats, found, strict=True) if f]
+        )
+        spread = float(np.linalg.norm(shifts.std(axis=0))) if len(shifts) >= 2 else math.inf
+        if spread < best_spread:
+            best, best_spread = found, spread
+    return best
+
+
+def _locate_each(
+    image: npt.NDArray[np.float32],
+    covered: Mask,
+    west: float,
+    north: float,
+    res_m: float,
+    quadrats: Sequence[Quadrat],
+    offset: tuple[float, float],
+    search_m: float,
+    bar_m: float,
+) -> list[tuple[float, float, float] | None]:
     found: list[tuple[float, float, float] | None] = []
     for q in quadrats:
         template = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
