@@ -68,7 +68,10 @@ class StreamingParams:
     window's solution shifts with every GPS fix by a centimetre or two, and chasing each
     shift would re-blend every frame at every solve."""
     render_every_s: float = 0.5
-    """Changed tiles are re-rendered at most this often (survey time)."""
+    """New coverage is rendered at most this often (survey time): a ping shows within
+    ``reorder_s`` plus this."""
+    refine_every_s: float = 1.5
+    """Pixels that already showed are re-rendered (refined by later frames) this often."""
     evict_after_s: float = 30.0
     """A tile no frame has touched for this long leaves memory."""
     live_registration_res_m: float | None = 0.03
@@ -197,6 +200,7 @@ class StreamingEngine:
         self._live: dict[int, _Live] = {}
         self._since_solve = 0
         self._last_render = -math.inf
+        self._last_refine = -math.inf
         self._pending_frames: dict[TileKey, list[int]] = {}
         self._edge_ends: list[int] = []  # edge.j of self.edges, ascending
         self._sigmas: deque[tuple[float, float]] = deque(maxlen=1000)
@@ -477,7 +481,10 @@ class StreamingEngine:
             return
         self._last_render = now
         started = clock.perf_counter()
-        for image in self.tiles.render_dirty():
+        full = force or now - self._last_refine >= self.params.refine_every_s
+        if full:
+            self._last_refine = now
+        for image in self.tiles.render_dirty(new_only=not full):
             self._publish(image)
         keep = {key for live in self._live.values() for key in live.tiles}
         for image in self.tiles.evict_idle(now, keep):
