@@ -75,6 +75,10 @@ class BenchResult:
         return self.frames / self.engine_s if self.engine_s > 0 else math.inf
 
     def as_json(self) -> dict[str, Any]:
+        """The report as JSON-ready values (NaN, e.g. no growth measured yet, is null)."""
+        return {k: _finite(v) for k, v in self._fields().items()}
+
+    def _fields(self) -> dict[str, Any]:
         return {
             "scenario": self.scenario,
             "frames": self.frames,
@@ -94,6 +98,14 @@ class BenchResult:
             "stages": self.stages_ms,
             "final_pass_s": self.final_pass_s,
         }
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value
 
 
 def run_bench(
@@ -199,6 +211,12 @@ def run_bench(
     )
 
 
+def _growth(value: float | None) -> str:
+    if value is None:
+        return "- (run more frames to measure it)"
+    return f"{value:.2f} MB per 1000 frames"
+
+
 def format_table(result: BenchResult) -> str:
     j = result.as_json()
     lines = [
@@ -218,7 +236,7 @@ def format_table(result: BenchResult) -> str:
         f"  latency p50 / p95        {j['latency_p50_s']:.2f} s / {j['latency_p95_s']:.2f} s",
         f"  memory start / end / peak {j['rss_start_mb']:.0f} / {j['rss_end_mb']:.0f} / "
         f"{j['peak_rss_mb']:.0f} MB",
-        f"  memory growth            {j['rss_growth_mb_per_1000_frames']:.2f} MB per 1000 frames",
+        f"  memory growth            {_growth(j['rss_growth_mb_per_1000_frames'])}",
         f"  tiles published          {j['tiles_published']}",
     ]
     if result.final_pass_s is not None:

@@ -105,3 +105,22 @@ def test_simulate_rejects_an_unknown_scenario(tmp_path: Path) -> None:
     result = seamap("simulate", "--scenario", "moon", "--out", tmp_path)
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
+
+
+def test_bench_reports_the_numbers_we_steer_by() -> None:
+    result = seamap("bench", "--pings", "40", "--beams", "64", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    for key in (
+        "frames_per_second",
+        "realtime_factor_10hz",
+        "peak_rss_mb",
+        "rss_growth_mb_per_1000_frames",
+        "latency_p95_s",
+        "stages",
+    ):
+        assert key in report
+    assert report["frames"] == 40
+    assert report["frames_per_second"] > 0
+    assert report["realtime_factor_10hz"] == pytest.approx(report["frames_per_second"] / 10)
+    assert {"preprocess", "registration", "blending", "render"} <= set(report["stages"])
