@@ -1,0 +1,303 @@
+"""The live link to an Oculus sonar: discover it, keep it pinging, turn its stream into Pings.
+
+Transport (PROTOCOLS.md): the sonar broadcasts an OculusStatusMsg by UDP (port 52102) about
+once a second; commands and pings use TCP (port 52100); the sonar pings only for a short
+while after each SimpleFire, so the link re-sends it every ``fire_interval_s``.
+
+The link never raises on what the sonar sends: bytes that frame as nothing are counted in
+``LinkStats.bytes_skipped``, pings that do not parse in ``parse_errors``. A lost connection,
+or no ping for ``silence_timeout_s``, closes the socket and reconnects after an exponential,
+capped backoff. Iterate ``pings()`` inside ``contextlib.aclosing`` (or cancel the task that
+iterates it) so that the firing task and the socket are closed when you stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncGenerator, Callable
+from dataclasses import dataclass, field
+
+from drivers.oculus.framer import OculusFramer
+from drivers.oculus.ping import parse_simple_ping
+from drivers.oculus.protocol import (
+    HEADER_SIZE,
+    FireFlags,
+    MasterMode,
+    MessageHeader,
+    MessageId,
+    OculusFormatError,
+    PingRate,
+    SimpleFire,
+    StatusMessage,
+)
+from mapping.samples import Ping
+from seamap.config import SonarConfig
+
+log = logging.getLogger(__name__)
+
+MessageCallback = Callable[[bytes, float], None]
+"""Called with every whole message (header + payload) and its receive time (UNIX s)."""
+
+_READ_SIZE = 1 << 16
+
+
+@dataclass(frozen=True)
+class FireSettings:
+    """What the link asks the sonar for (sent as SimpleFire v2, range in metres).
+
+    range_m: metres. gain_percent: 0..100. gamma: 0..255 (127 ~ gamma 0.5).
+    """
+
+    master_mode: MasterMode = MasterMode.HIGH_FREQUENCY
+    range_m: float = 10.0
+    gain_percent: float = 50.0
+    gamma: int = 127
+    ping_rate: PingRate = PingRate.HZ10
+    data_16bit: bool = False
+    send_gain: bool = False
+
+    def to_message(self) -> SimpleFire:
+        """The SimpleFire v2 message for these settings."""
+        flags = FireFlags.RANGE_IN_METRES | FireFlags.SIMPLE_RETURN | FireFlags.GAIN_ASSIST
+        if self.data_16bit:
+            flags |= FireFlags.DATA_16BIT
+        if self.send_gain:
+            flags |= FireFlags.SEND_GAIN
+        return SimpleFire(
+            version=2,
+            master_mode=int(self.master_mode),
+            ping_rate=int(self.ping_rate),
+            gamma=self.gamma,
+            flags=int(flags),
+            range_m=self.range_m,
+            gain_percent=self.gain_percent,
+        )
+
+
+@dataclass(frozen=True)
+class LinkTiming:
+    """Timing of the link, seconds.
+
+    fire_interval_s: SimpleFire re-send period. silence_timeout_s: no ping for this long
+    means the link is dead. idle_flush_s: after this long without bytes, a message the
+    framer holds back (its tail could start a header) is released. backoff_*: reconnect
+    delay, doubled after each failed attempt up to backoff_max_s.
+    """
+
+    fire_interval_s: float = 1.0
+    silence_timeout_s: float = 5.0
+    connect_timeout_s: float = 3.0
+    idle_flush_s: float = 0.2
+    backoff_initial_s: float = 0.5
+    backoff_max_s: float = 10.0
+
+
+@dataclass
+class LinkStats:
+    """Counters since the link was made.
+
+    connects: TCP connections made; reconnects: connections after the first one;
+    silences: connections given up because no ping came for ``silence_timeout_s``;
+    bytes_received / bytes_skipped: from the TCP stream (skipped = framed as nothing);
+    messages: whole messages framed; parse_errors: SimplePingResults that did not parse.
+    """
+
+    pings: int = 0
+    messages: int = 0
+    connects: int = 0
+    reconnects: int = 0
+    silences: int = 0
+    bytes_received: int = 0
+    bytes_skipped: int = 0
+    parse_errors: int = 0
+    sonar_address: str | None = None
+    last_status: StatusMessage | None = field(default=None, repr=False)
+
+
+class _Silence(Exception):
+    """No ping for ``silence_timeout_s``."""
+
+
+class _StatusListener(asyncio.DatagramProtocol):
+    """Resolves a future with the first valid OculusStatusMsg and its sender address."""
+
+    def __init__(self, found: asyncio.Future[tuple[StatusMessage, str]]) -> None:
+        self._found = found
+
+    def datagram_received(self, data: bytes, addr: tuple[str | bytes, int]) -> None:
+        try:
+            status = StatusMessage.unpack(data)
+        except OculusFormatError:
+            return
+        if not self._found.done():
+            self._found.set_result((status, str(addr[0])))
+
+
+class OculusLink:
+    """Asyncio client of one Oculus sonar.
+
+    address: "auto" (take the sender of the first status message heard on
+    ``status_host:status_port``) or an IPv4 address. ``on_message`` sees every whole message
+    with its receive time (UNIX s) before anything parses it, e.g. to record a log.
+    """
+
+    def __init__(
+        self,
+        address: str = "auto",
+        *,
+        tcp_port: int = 52100,
+        status_port: int = 52102,
+        status_host: str = "0.0.0.0",
+        fire: FireSettings | None = None,
+        timing: LinkTiming | None = None,
+        on_message: MessageCallback | None = None,
+    ) -> None:
+        self.address = address
+        self.tcp_port = tcp_port
+        self.status_port = status_port
+        self.status_host = status_host
+        self.fire = fire if fire is not None else FireSettings()
+        self.timing = timing if timing is not None else LinkTiming()
+        self.on_message = on_message
+        self.stats = LinkStats()
+        self._framer = OculusFramer()
+        self._host: str | None = None if address == "auto" else address
+
+    @classmethod
+    def from_config(
+        cls,
+        config: SonarConfig,
+        *,
+        fire: FireSettings | None = None,
+        timing: LinkTiming | None = None,
+        on_message: MessageCallback | None = None,
+    ) -> OculusLink:
+        """A link to the sonar that ``config`` names, listening for status on all interfaces."""
+        return cls(
+            config.address,
+            tcp_port=config.tcp_port,
+            status_port=config.status_port,
+            fire=fire,
+            timing=timing,
+            on_message=on_message,
+        )
+
+    async def discover(self) -> str:
+        """Wait for a status message on the status port; return the sender's IPv4 address."""
+        loop = asyncio.get_running_loop()
+        found: asyncio.Future[tuple[StatusMessage, str]] = loop.create_future()
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: _StatusListener(found),
+            local_addr=(self.status_host, self.status_port),
+            reuse_port=False,
+        )
+        try:
+            status, host = await found
+        finally:
+            transport.close()
+        self.stats.last_status = status
+        log.info("Oculus sonar %d (part %d) at %s", status.device_id, status.part_number, host)
+        return host
+
+    async def pings(self) -> AsyncGenerator[Ping, None]:
+        """Pings as they arrive (stamped on receipt, UNIX s), across reconnects, forever."""
+        backoff = self.timing.backoff_initial_s
+        while True:
+            if self._host is None:
+                self._host = await self.discover()
+            try:
+                reader, writer = await asyncio.wait_for(
+                    asyncio.open_connection(self._host, self.tcp_port),
+                    self.timing.connect_timeout_s,
+                )
+            except (OSError, TimeoutError) as e:
+                log.warning("Oculus %s:%d: connect failed (%s)", self._host, self.tcp_port, e)
+                if self.address == "auto":
+                    self._host = None  # the sonar may have moved: listen again
+                await asyncio.sleep(backoff)
+                backoff = min(2.0 * backoff, self.timing.backoff_max_s)
+                continue
+            self.stats.connects += 1
+            self.stats.reconnects = self.stats.connects - 1
+            self.stats.sonar_address = self._host
+            self._framer.reset()
+            self.stats.bytes_skipped = self._framer.bytes_skipped
+            firing = asyncio.create_task(self._keep_firing(writer))
+            try:
+                async with contextlib.aclosing(self._receive(reader)) as received:
+                    async for ping in received:
+                        backoff = self.timing.backoff_initial_s
+                        yield ping
+            except _Silence:
+                self.stats.silences += 1
+                log.warning(
+                    "Oculus: no ping for %.1f s, reconnecting", self.timing.silence_timeout_s
+                )
+            except OSError as e:
+                log.warning("Oculus: connection lost (%s), reconnecting", e)
+            finally:
+                firing.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await firing
+                writer.transport.abort()
+            await asyncio.sleep(backoff)
+            backoff = min(2.0 * backoff, self.timing.backoff_max_s)
+
+    async def _keep_firing(self, writer: asyncio.StreamWriter) -> None:
+        """Send SimpleFire now and every ``fire_interval_s``; stop quietly on a dead socket."""
+        message = self.fire.to_message().pack()
+        try:
+            while True:
+                writer.write(message)
+                await writer.drain()
+                await asyncio.sleep(self.timing.fire_interval_s)
+        except OSError:
+            return  # the receive side sees the loss and reconnects
+
+    async def _receive(self, reader: asyncio.StreamReader) -> AsyncGenerator[Ping, None]:
+        """Pings from one connection; returns on EOF, raises _Silence on a quiet sonar."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.timing.silence_timeout_s
+        while True:
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                raise _Silence
+            try:
+                data = await asyncio.wait_for(
+                    reader.read(_READ_SIZE), min(remaining, self.timing.idle_flush_s)
+                )
+            except TimeoutError:
+                messages = self._framer.flush()
+            else:
+                if not data:
+                    log.warning("Oculus: connection closed by the sonar, reconnecting")
+                    return
+                self.stats.bytes_received += len(data)
+                messages = self._framer.feed(data)
+            self.stats.bytes_skipped = self._framer.bytes_skipped
+            received = time.time()
+            for message in messages:
+                ping = self._handle(message, received)
+                if ping is not None:
+                    deadline = loop.time() + self.timing.silence_timeout_s
+                    yield ping
+
+    def _handle(self, message: bytes, received: float) -> Ping | None:
+        """Record, count and (for a SimplePingResult) parse one whole message."""
+        self.stats.messages += 1
+        if self.on_message is not None:
+            self.on_message(message, received)
+        header = MessageHeader.unpack(message[:HEADER_SIZE])  # the framer checked it
+        if header.msg_id != MessageId.SIMPLE_PING_RESULT:
+            return None  # Status, Dummy (standby), UserConfig...: nothing to map
+        try:
+            ping = parse_simple_ping(message, received)
+        except Exception as e:  # a corrupt ping is counted and skipped, never raised
+            self.stats.parse_errors += 1
+            log.debug("Oculus: corrupt ping skipped: %s", e)
+            return None
+        self.stats.pings += 1
+        return ping
