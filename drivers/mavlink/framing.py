@@ -57,8 +57,9 @@ class FramingReport(Protocol):
 
 
 @dataclass
-class _Tally:
-    """A report nobody reads, for the look-ahead scans (format detection, time base)."""
+class ScanTally:
+    """A ``FramingReport`` for scans whose counts nobody reads (look-ahead scans, and
+    callers that only want the frames)."""
 
     messages: int = 0
     counts: dict[str, int] = field(default_factory=dict)
@@ -103,7 +104,7 @@ def detect_format(buf: Buffer, where: Path) -> str:
     # A readable record (plausible stamp, magic, good CRC) near the start makes a tlog,
     # even if the very first bytes were damaged.
     head = buf[: 65536 + _MAX_RECORD]
-    if next(scan_tlog(head, _Tally()), None) is not None:
+    if next(scan_tlog(head, ScanTally()), None) is not None:
         return "tlog"
     # Or a first record cut off by the end of the file (stamp and magic seen).
     if 9 <= len(buf) < _MAX_RECORD and _tlog_tail_is_cut(bytes(buf)):
@@ -324,7 +325,7 @@ def dataflash_time_base(buf: Buffer, report: FramingReport) -> float | None:
     pymavlink counts them). Without one, DFReader counts from boot (offset 0), and so do
     we, reporting time_reference "boot". None for a log without TimeUS at all.
     """
-    scan = DataFlashScan(buf, _Tally())
+    scan = DataFlashScan(buf, ScanTally())
     first_us: int | None = None
     gps = None
     for fmt, offset in scan.messages():

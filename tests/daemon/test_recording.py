@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import errno
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +13,7 @@ from pymavlink.dialects.v20 import all as mavlink
 
 from daemon.recording import SurveyRecorder, TlogWriter, segments
 from drivers.mavlink import read_nav_log
-from drivers.mavlink.framing import open_log, scan_tlog
+from drivers.mavlink.framing import ScanTally, open_log, scan_tlog
 from drivers.oculus.logfile import LogReadReport, OculusLogWriter, iter_log_items, iter_pings
 from drivers.oculus.ping import build_simple_ping
 from mapping.samples import Ping
@@ -31,19 +30,6 @@ class FakeClock:
 
     def __call__(self) -> float:
         return self.now
-
-
-@dataclass
-class Report:
-    """A FramingReport for scan_tlog."""
-
-    messages: int = 0
-    counts: dict[str, int] = field(default_factory=dict)
-    bytes_skipped: int = 0
-    bad_packets: int = 0
-    truncated: bool = False
-    time_reference: str = "none"
-    notes: list[str] = field(default_factory=list)
 
 
 def ping_message(k: int) -> tuple[bytes, float]:
@@ -81,7 +67,7 @@ def mavlink_packet(k: int) -> tuple[bytes, float]:
 def read_tlog(path: Path) -> list[tuple[float, bytes]]:
     """(time, packet bytes) of every record of a .tlog as it is on disk."""
     with open_log(path) as (_, buf):
-        return [(t, bytes(msg.get_msgbuf())) for t, msg in scan_tlog(buf, Report())]
+        return [(t, bytes(msg.get_msgbuf())) for t, msg in scan_tlog(buf, ScanTally())]
 
 
 def read_sonar(path: Path) -> list[tuple[float, bytes]]:
