@@ -26,6 +26,20 @@ class DaemonConfig:
     """Surveys are kept under state_dir/surveys/{survey}/."""
     survey_autostart: bool = False
     """true: open a survey as soon as the daemon runs."""
+    log_level: str = "info"
+    """Daemon log level on stderr: "debug", "info" (events and a health line at
+    health_interval_s), "warning" or "error"."""
+    health_interval_s: float = 30.0
+    """How often (seconds) the daemon logs its health line."""
+    min_free_mb: float = 200.0
+    """Recording stops cleanly (and says so) when the state_dir filesystem has less free
+    space than this (MiB)."""
+    max_backlog_frames: int = 20
+    """Sonar frames allowed to wait for the mapping engine; newer frames beyond this are
+    skipped live (counted; they stay recorded and the survey-end pass maps them)."""
+    final_pass: bool = True
+    """Run the survey-end pass (the whole survey re-solved, the result folder written)
+    when a survey ends and on SIGTERM."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +60,21 @@ class SonarConfig:
     """"auto": take the first sonar heard on the status port; else an IPv4 address."""
     tcp_port: int = 52100
     status_port: int = 52102
+    frequency: str = "low"
+    """Operating frequency the sonar is fired at: "low" (M1200d: 1.2 MHz, 130 degrees,
+    up to 40 m) or "high" (2.1 MHz, 60 degrees, up to 10 m)."""
+    range_m: float = 5.0
+    """Range the sonar is fired at (metres)."""
+    gain_percent: float = 50.0
+    """Receiver gain, 0..100."""
+    gamma: int = 127
+    """Gamma correction of the sonar's 8-bit images, 0..255 (127 is about 0.5)."""
+    ping_rate_hz: int = 10
+    """Maximum ping rate asked for: 2, 5, 10, 15 or 40."""
+    data_bits: int = 8
+    """Sample size asked for: 8 or 16 bits."""
+    send_gain: bool = True
+    """Ask for the per-row gain words with each ping."""
 
 
 HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")
@@ -103,11 +132,26 @@ class SiteConfig:
     mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
-_CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
+_CHOICES: dict[tuple[str, str], tuple[Any, ...]] = {
     ("mavlink", "heading_source"): HEADING_SOURCES,
     ("mavlink", "imu_source"): IMU_SOURCES,
     ("zenoh", "mode"): ("peer", "client", "router"),
     ("mapping", "blending"): ("robust", "average"),
+    ("daemon", "log_level"): ("debug", "info", "warning", "error"),
+    ("sonar", "frequency"): ("low", "high"),
+    ("sonar", "ping_rate_hz"): (2, 5, 10, 15, 40),
+    ("sonar", "data_bits"): (8, 16),
+}
+
+_RANGES: dict[tuple[str, str], tuple[float, float]] = {
+    ("daemon", "health_interval_s"): (0.1, 86400.0),
+    ("daemon", "min_free_mb"): (0.0, 1e9),
+    ("daemon", "max_backlog_frames"): (1, 10000),
+    ("sonar", "range_m"): (0.1, 120.0),
+    ("sonar", "gain_percent"): (0.0, 100.0),
+    ("sonar", "gamma"): (0, 255),
+    ("sonar", "tcp_port"): (1, 65535),
+    ("sonar", "status_port"): (1, 65535),
 }
 
 
@@ -154,8 +198,12 @@ def _section(name: str, cls: type[Any], table: Any) -> Any:
         values[key] = _coerce(f"[{name}] {key}", value, hints[key])
         allowed = _CHOICES.get((name, key))
         if allowed is not None and values[key] not in allowed:
+            choices = ", ".join(str(a) for a in allowed)
+            raise SeamapError(f"config: [{name}] {key} = {value!r} is not one of {choices}")
+        bounds = _RANGES.get((name, key))
+        if bounds is not None and not bounds[0] <= values[key] <= bounds[1]:
             raise SeamapError(
-                f"config: [{name}] {key} = {value!r} is not one of {', '.join(allowed)}"
+                f"config: [{name}] {key} = {value!r} is outside {bounds[0]:g}..{bounds[1]:g}"
             )
     return cls(**values)
 

@@ -166,6 +166,22 @@ class OculusLink:
         self._framer = OculusFramer()
         self._host: str | None = None if address == "auto" else address
 
+    @staticmethod
+    def fire_from_config(config: SonarConfig) -> FireSettings:
+        """The SimpleFire settings the ``[sonar]`` table asks for."""
+        rates = {rate.hz: rate for rate in PingRate if rate != PingRate.STANDBY}
+        return FireSettings(
+            master_mode=(
+                MasterMode.LOW_FREQUENCY if config.frequency == "low" else MasterMode.HIGH_FREQUENCY
+            ),
+            range_m=config.range_m,
+            gain_percent=config.gain_percent,
+            gamma=config.gamma,
+            ping_rate=rates[float(config.ping_rate_hz)],
+            data_16bit=config.data_bits == 16,
+            send_gain=config.send_gain,
+        )
+
     @classmethod
     def from_config(
         cls,
@@ -180,7 +196,7 @@ class OculusLink:
             config.address,
             tcp_port=config.tcp_port,
             status_port=config.status_port,
-            fire=fire,
+            fire=fire if fire is not None else cls.fire_from_config(config),
             timing=timing,
             on_message=on_message,
         )
