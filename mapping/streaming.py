@@ -234,6 +234,11 @@ class StreamingEngine:
             self._latest = t
         self._release(self._latest - self.params.reorder_s)
 
+    @property
+    def processed_upto(self) -> float:
+        """Every sample stamped at or before this time (s) has been processed."""
+        return self._released
+
     def flush(self) -> None:
         """Process everything held (the end of the stream), render what changed, and
         make every remaining pose final."""

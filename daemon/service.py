@@ -1,0 +1,486 @@
+"""The boat daemon (``seamap run``): record first, map live, end each survey with its result.
+
+One asyncio loop; one supervised task per concern (``daemon.supervisor``):
+
+- **sonar**: ``OculusLink`` keeps the sonar pinging; every message it receives goes to the
+  recorder before anything parses it; pings go to the mapper.
+- **mavlink**: ``MavlinkLink`` talks to the autopilot; every packet goes to the recorder,
+  typed samples to the mapper.
+- **recording**: flushes the recorder on a timer, so a pause in the data is still on disk
+  within a second.
+- **health**: a snapshot a second (``daemon.health``), a log line every
+  ``health_interval_s``; **watchdog**: pets systemd while the loop, the recorder and the
+  mapping thread are alive; **control**: the local control socket (``daemon.control``).
+
+The mapping engine runs on its own thread (``daemon.mapper``). A survey is a folder
+``state_dir/surveys/{id}/`` with ``survey.json`` (``daemon.survey``), the recorder's
+segments, and at the end the contract's result folder, written by the survey-end pass:
+the recorded segments replayed through the single-stage pipeline (``seamap.replay``),
+exactly what ``seamap replay --survey`` computes. The pass runs off the loop, after the
+survey is closed, while the daemon carries on (a new survey may already record).
+
+SIGTERM or SIGINT ends the current survey (its pass runs to the end, with systemd's stop
+timeout extended while it progresses) and the daemon exits 0; a second signal abandons
+the pass, which then runs again at the next start. After a crash or ``kill -9`` the next
+start resumes the survey that was recording in a new segment, and reruns passes that
+were cut short.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import shutil
+import signal
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from daemon.health import HealthMonitor, LiveParts
+from daemon.mapper import MappingWorker
+from daemon.notify import Notifier
+from daemon.recording import SurveyRecorder
+from daemon.supervisor import Supervisor
+from daemon.survey import (
+    SurveyState,
+    new_survey_id,
+    read_state,
+    surveys_dir,
+    unfinished,
+    write_state,
+)
+from drivers.mavlink.link import MavlinkLink
+from drivers.oculus.link import OculusLink
+from mapping.samples import GnssFix, NavSample, Ping
+from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
+from seamap.config import SiteConfig
+from seamap.errors import SeamapError
+from seamap.replay import mount_from_config, pipeline_params
+from seamap.tilespill import DiskSpill
+
+log = logging.getLogger(__name__)
+
+RECORDER_POLL_S = 0.25
+LIVE_TILES = "live-tiles"
+"""Folder (in the survey folder) where the live map's idle tiles wait; removed at the end."""
+
+
+class Daemon:
+    """See the module docstring. ``run()`` until a signal or ``shutdown()``; returns 0."""
+
+    def __init__(self, config: SiteConfig, notifier: Notifier | None = None) -> None:
+        self.config = config
+        self.state_dir = Path(config.daemon.state_dir)
+        self.notifier = notifier if notifier is not None else Notifier()
+        self.health = HealthMonitor(config.daemon.vehicle, self.state_dir)
+        self.parts = LiveParts()
+        self.supervisor = Supervisor()
+        self.parts.task_restarts = self.supervisor.restarts
+        self.survey: SurveyState | None = None
+        self.latest_pose: PoseUpdate | None = None
+        self.tiles_published = 0
+        self._survey_dir: Path | None = None
+        self._passes: dict[str, asyncio.Task[None]] = {}
+        self._pass_progress: dict[str, str] = {}
+        self._shutdown = asyncio.Event()
+        self._last_recorder_poll = time.monotonic()
+        self._signals = 0
+
+    # --- lifecycle ---------------------------------------------------------------------------
+
+    async def run(self) -> int:
+        self._prepare_state_dir()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._on_signal, sig)
+        for name, task in (
+            ("sonar", self._sonar_task),
+            ("mavlink", self._mavlink_task),
+            ("recording", self._recording_task),
+            ("health", self._health_task),
+            ("watchdog", self._watchdog_task),
+            ("control", self._control_task),
+        ):
+            self.supervisor.spawn(name, task)
+        self._recover()
+        if self.survey is None and self.config.daemon.survey_autostart:
+            await self.start_survey("autostart")
+        self.notifier.ready(self._status_text())
+        log.info(
+            "daemon ready",
+            extra={
+                "fields": {
+                    "vehicle": self.config.daemon.vehicle,
+                    "state_dir": str(self.state_dir),
+                    "survey": self.survey.id if self.survey else None,
+                }
+            },
+        )
+        await self._shutdown.wait()
+        self.notifier.stopping("ending the survey")
+        log.info("shutting down", extra={"fields": {"survey": self._survey_id()}})
+        await self.stop_survey("shutdown")
+        while self._passes:
+            await asyncio.gather(*self._passes.values(), return_exceptions=True)
+        await self.supervisor.stop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+        self.notifier.close()
+        log.info("stopped")
+        return 0
+
+    def shutdown(self) -> None:
+        """Ask ``run()`` to end the survey and return (as SIGTERM does)."""
+        self._shutdown.set()
+
+    def _on_signal(self, sig: signal.Signals) -> None:
+        self._signals += 1
+        if self._signals == 1:
+            log.info("signal received", extra={"fields": {"signal": sig.name}})
+            self._shutdown.set()
+            return
+        # A second signal: leave now. Recordings are closed; cut passes rerun at next start.
+        log.warning(
+            "second signal: leaving without waiting for the survey-end pass",
+            extra={"fields": {"signal": sig.name, "pending": ",".join(self._passes) or None}},
+        )
+        logging.shutdown()
+        os._exit(0)
+
+    def _prepare_state_dir(self) -> None:
+        tmp = self.state_dir / "tmp"
+        try:
+            surveys_dir(self.state_dir).mkdir(parents=True, exist_ok=True)
+            tmp.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise SeamapError(
+                f"{self.state_dir}: cannot create the state folder ({exc.strerror or exc})"
+            ) from None
+        if not os.access(self.state_dir, os.W_OK):
+            raise SeamapError(f"{self.state_dir}: the state folder is not writable")
+        # Scratch files of the survey-end pass (spilled tiles) go to the state disk, not
+        # to a small /tmp.
+        for stale in tmp.iterdir():
+            shutil.rmtree(stale, ignore_errors=True)
+        tempfile.tempdir = str(tmp)
+
+    def _recover(self) -> None:
+        """Resume the survey a crash interrupted; rerun survey-end passes that were cut."""
+        left = unfinished(self.state_dir)
+        recording = [s for s in left if s.state == "recording"]
+        for state in left:
+            if recording and state is recording[-1]:
+                continue
+            if state.state == "recording":
+                state.state, state.ended = "finishing", time.time()
+                state.reason = state.reason or "interrupted"
+                write_state(surveys_dir(self.state_dir) / state.id, state)
+            log.info(
+                "rerunning an interrupted survey-end pass", extra={"fields": {"survey": state.id}}
+            )
+            self._start_pass(state)
+        if recording:
+            self._open(recording[-1], resumed=True)
+
+    # --- surveys -----------------------------------------------------------------------------
+
+    async def start_survey(self, reason: str = "command") -> str:
+        """Open a new survey (or return the one already open): its id."""
+        if self.survey is not None:
+            return self.survey.id
+        survey_id = new_survey_id(self.state_dir)
+        state = SurveyState(survey_id, self.config.daemon.vehicle, started=time.time())
+        state.reason = reason
+        (surveys_dir(self.state_dir) / survey_id).mkdir(parents=True)
+        self._open(state, resumed=False)
+        return survey_id
+
+    def _open(self, state: SurveyState, *, resumed: bool) -> None:
+        survey_dir = surveys_dir(self.state_dir) / state.id
+        live_tiles = survey_dir / LIVE_TILES
+        shutil.rmtree(live_tiles, ignore_errors=True)  # a crashed run's live map is stale
+        recorder = SurveyRecorder(
+            survey_dir, min_free_bytes=int(self.config.daemon.min_free_mb * 2**20)
+        )
+        state.segments = max(state.segments + 1, recorder.stats.segments)
+        write_state(survey_dir, state)
+        params = StreamingParams(pipeline=pipeline_params(self.config))
+        mount = mount_from_config(self.config.sonar)
+        mapper = MappingWorker(
+            lambda: StreamingEngine(mount, params, spill=DiskSpill(live_tiles)),
+            loop=asyncio.get_running_loop(),
+            max_backlog_frames=self.config.daemon.max_backlog_frames,
+            on_pose=self._on_pose,
+            on_tile=self._on_tile,
+        )
+        self.survey, self._survey_dir = state, survey_dir
+        self.parts.recorder, self.parts.mapper, self.parts.survey = recorder, mapper, state.id
+        self.latest_pose, self.tiles_published = None, 0
+        log.info(
+            "survey resumed" if resumed else "survey started",
+            extra={
+                "fields": {
+                    "survey": state.id,
+                    "segment": recorder.stats.segment,
+                    "folder": str(survey_dir),
+                }
+            },
+        )
+        if recorder.stats.stopped:
+            log.error(
+                "survey is not being recorded",
+                extra={"fields": {"survey": state.id, "reason": recorder.stats.stop_reason}},
+            )
+
+    async def stop_survey(self, reason: str = "command", *, wait: bool = True) -> str | None:
+        """Close the open survey and run its survey-end pass (awaited when ``wait``)."""
+        state, recorder, mapper = self.survey, self.parts.recorder, self.parts.mapper
+        if state is None:
+            return None
+        self.survey = None
+        self.parts.recorder = self.parts.mapper = None
+        self.parts.survey = None
+        if recorder is not None:
+            recorder.close()
+        stats = await mapper.finish() if mapper is not None else None
+        state.state, state.ended, state.reason = "finishing", time.time(), reason
+        assert self._survey_dir is not None
+        write_state(self._survey_dir, state)
+        log.info(
+            "survey ended",
+            extra={
+                "fields": {
+                    "survey": state.id,
+                    "reason": reason,
+                    "live_mapped": stats.frames_mapped if stats else None,
+                    "recorded_pings": recorder.stats.sonar.items if recorder else None,
+                }
+            },
+        )
+        task = self._start_pass(state)
+        if wait:
+            await asyncio.gather(task, return_exceptions=True)
+        return state.id
+
+    def _start_pass(self, state: SurveyState) -> asyncio.Task[None]:
+        task = asyncio.create_task(self._final_pass(state), name=f"final-pass-{state.id}")
+        self._passes[state.id] = task
+        task.add_done_callback(lambda _: self._passes.pop(state.id, None))
+        return task
+
+    async def _final_pass(self, state: SurveyState) -> None:
+        survey_dir = surveys_dir(self.state_dir) / state.id
+        self._pass_progress[state.id] = "starting"
+        self.parts.final_passes = self._pass_progress
+        if not self.config.daemon.final_pass:
+            state.state, state.result = "done", {"final_pass": False}
+            write_state(survey_dir, state)
+            self._pass_progress.pop(state.id, None)
+            return
+        started = time.monotonic()
+        keepalive = asyncio.create_task(self._extend_stop_timeout(state.id))
+        try:
+            report = await asyncio.to_thread(self._replay, survey_dir, state.id)
+        except SeamapError as exc:
+            state.state, state.reason = "failed", str(exc)
+            log.error(
+                "survey-end pass failed", extra={"fields": {"survey": state.id, "reason": str(exc)}}
+            )
+        except Exception as exc:
+            state.state, state.reason = "failed", f"{type(exc).__name__}: {exc}"
+            log.error(
+                "survey-end pass failed",
+                extra={"fields": {"survey": state.id, "reason": state.reason}},
+            )
+            log.debug("survey-end pass failure", exc_info=True)
+        else:
+            frames = report["frames"]
+            state.state = "done"
+            state.result = {
+                "frames_read": frames["read"],
+                "frames_mapped": frames["mapped"],
+                "rejected": frames["rejected"],
+                "seconds": round(time.monotonic() - started, 1),
+                "files": ["mosaic.tif", "mosaic.png", "trajectory.csv", "report.json"],
+            }
+            log.info(
+                "survey mapped",
+                extra={
+                    "fields": {
+                        "survey": state.id,
+                        "frames": frames["read"],
+                        "mapped": frames["mapped"],
+                        "seconds": state.result["seconds"],
+                        "result": str(survey_dir),
+                    }
+                },
+            )
+        finally:
+            keepalive.cancel()
+            self._pass_progress.pop(state.id, None)
+        shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
+        write_state(survey_dir, state)
+
+    def _replay(self, survey_dir: Path, survey_id: str) -> dict[str, Any]:
+        from seamap.replay import replay_survey
+
+        def progress(stage: str, done: int, total: int) -> None:
+            self._pass_progress[survey_id] = f"{stage} {done}/{total}"
+
+        return replay_survey(survey_dir, self.config, survey_dir, progress=progress)
+
+    async def _extend_stop_timeout(self, survey_id: str) -> None:
+        """While a pass runs during shutdown, keep systemd's stop timeout ahead of it."""
+        while True:
+            if self._shutdown.is_set():
+                self.notifier.extend_timeout(60.0)
+                self.notifier.status(
+                    f"survey-end pass {survey_id}: {self._pass_progress.get(survey_id)}"
+                )
+            await asyncio.sleep(10.0)
+
+    # --- sensors -----------------------------------------------------------------------------
+
+    async def _sonar_task(self) -> None:
+        link = OculusLink.from_config(self.config.sonar, on_message=self._on_sonar_message)
+        self.parts.sonar = link
+        async with contextlib.aclosing(link.pings()) as pings:
+            async for ping in pings:
+                self._on_ping(ping)
+
+    def _on_sonar_message(self, message: bytes, received: float) -> None:
+        recorder = self.parts.recorder
+        if recorder is not None:
+            recorder.record_sonar(message, received)
+
+    def _on_ping(self, ping: Ping) -> None:
+        self.parts.last_ping = ping.time
+        mapper = self.parts.mapper
+        if mapper is not None:
+            mapper.submit(ping)
+
+    async def _mavlink_task(self) -> None:
+        m = self.config.mavlink
+        link = MavlinkLink(
+            m.url,
+            baud=m.baud,
+            heading_source=m.heading_source,
+            imu_source=m.imu_source,
+            declination_deg=m.declination_deg,
+            on_packet=self._on_nav_packet,
+            on_sample=self._on_nav_sample,
+        )
+        self.parts.mavlink = link
+        try:
+            await link.start()
+            await asyncio.Event().wait()
+        finally:
+            await link.close()
+
+    def _on_nav_packet(self, packet: bytes, received: float) -> None:
+        recorder = self.parts.recorder
+        if recorder is not None:
+            recorder.record_mavlink(packet, received)
+
+    def _on_nav_sample(self, sample: NavSample) -> None:
+        if isinstance(sample, GnssFix) and sample.usable:
+            self.parts.last_fix = sample.time
+        mapper = self.parts.mapper
+        if mapper is not None:
+            mapper.submit(sample)
+
+    # --- mapping output ----------------------------------------------------------------------
+
+    def _on_pose(self, update: PoseUpdate) -> None:
+        if self.latest_pose is None or update.time >= self.latest_pose.time:
+            self.latest_pose = update
+
+    def _on_tile(self, update: TileUpdate) -> None:
+        self.tiles_published += 1
+
+    # --- housekeeping ------------------------------------------------------------------------
+
+    async def _recording_task(self) -> None:
+        while True:
+            self._last_recorder_poll = time.monotonic()
+            recorder = self.parts.recorder
+            if recorder is not None:
+                recorder.poll()
+            await asyncio.sleep(RECORDER_POLL_S)
+
+    async def _health_task(self) -> None:
+        interval = self.config.daemon.health_interval_s
+        next_line = time.monotonic() + min(interval, 5.0)
+        while True:
+            self.health.sample(self.parts)
+            if time.monotonic() >= next_line:
+                self.health.log_line()
+                self.notifier.status(self._status_text())
+                next_line += interval
+            await asyncio.sleep(1.0)
+
+    def _alive(self) -> bool:
+        """What the systemd watchdog vouches for: the recorder is flushed on time and the
+        mapping thread runs (the loop itself runs, or this is not called)."""
+        if time.monotonic() - self._last_recorder_poll > 5.0:
+            return False
+        mapper = self.parts.mapper
+        return mapper is None or mapper.alive
+
+    async def _watchdog_task(self) -> None:
+        interval = self.notifier.watchdog_interval_s
+        if interval is None:
+            await asyncio.Event().wait()
+            return
+        while True:
+            if self._alive():
+                self.notifier.watchdog()
+            else:
+                log.error("watchdog withheld: recorder or mapping stalled")
+            await asyncio.sleep(interval / 2)
+
+    async def _control_task(self) -> None:
+        from daemon.control import serve_control
+
+        await serve_control(self, self.state_dir / "control.sock")
+
+    def status(self) -> dict[str, Any]:
+        """The latest health snapshot plus the survey and the newest pose."""
+        snapshot = dict(self.health.latest) or self.health.sample(self.parts)
+        pose = self.latest_pose
+        snapshot["pose"] = None if pose is None else {
+            "time": pose.time,
+            "lat": pose.lat,
+            "lon": pose.lon,
+            "east": pose.east,
+            "north": pose.north,
+            "heading_deg": pose.heading_deg,
+            "epsg": pose.epsg,
+        }  # fmt: skip
+        snapshot["tiles_published"] = self.tiles_published
+        return snapshot
+
+    def _survey_id(self) -> str | None:
+        return self.survey.id if self.survey is not None else None
+
+    def _status_text(self) -> str:
+        snap = self.health.latest
+        survey = self._survey_id() or "no survey"
+        if not snap:
+            return survey
+        frames = snap["frames"]
+        lag = snap["lag_s"]
+        return (
+            f"{survey}: {frames['mapped']} frames mapped, lag {lag:.1f} s"
+            if math.isfinite(lag)
+            else survey
+        )
+
+
+def state_of(state_dir: Path, survey_id: str) -> SurveyState | None:
+    """A survey's state from its folder (for tests and tools)."""
+    return read_state(surveys_dir(state_dir) / survey_id)

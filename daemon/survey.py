@@ -1,0 +1,98 @@
+"""Survey folders and their state: ``state_dir/surveys/{survey}/survey.json``.
+
+A survey is opened (``recording``), ended (``finishing`` while the survey-end pass runs)
+and then ``done`` (result folder written) or ``failed`` (the pass could not map it; the
+recordings stay intact and ``seamap replay --survey`` can retry). The state file is
+replaced atomically, so a crash at any moment leaves either the old or the new state;
+the daemon reads it at start-up to resume a survey that was recording (a new segment)
+or to redo a survey-end pass that was cut short.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+State = Literal["recording", "finishing", "done", "failed"]
+STATE_FILE = "survey.json"
+_ID = re.compile(r"^\d{8}-\d{6}(-\d+)?$")
+
+
+@dataclass
+class SurveyState:
+    """What ``survey.json`` holds (times UNIX s)."""
+
+    id: str
+    vehicle: str
+    state: State = "recording"
+    started: float = 0.0
+    ended: float | None = None
+    segments: int = 0
+    """Recording segments opened (one per daemon run that recorded into the survey)."""
+    reason: str | None = None
+    """Why the survey failed, or what ended it ("command", "shutdown")."""
+    result: dict[str, Any] = field(default_factory=dict)
+    """Summary of the survey-end pass: frames read/mapped, files written."""
+
+
+def surveys_dir(state_dir: str | os.PathLike[str]) -> Path:
+    return Path(state_dir) / "surveys"
+
+
+def new_survey_id(state_dir: str | os.PathLike[str], now: float | None = None) -> str:
+    """A fresh id from the UTC start time, ``YYYYMMDD-HHMMSS`` (``-2``, ``-3``... when taken)."""
+    base = time.strftime("%Y%m%d-%H%M%S", time.gmtime(time.time() if now is None else now))
+    root = surveys_dir(state_dir)
+    candidate, n = base, 1
+    while (root / candidate).exists():
+        n += 1
+        candidate = f"{base}-{n}"
+    return candidate
+
+
+def write_state(survey_dir: Path, state: SurveyState) -> None:
+    """Replace ``survey.json`` atomically (temp file, fsync, rename)."""
+    path = survey_dir / STATE_FILE
+    tmp = path.with_name(f".{STATE_FILE}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(asdict(state), f, indent=2)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    with contextlib.suppress(OSError):
+        fd = os.open(survey_dir, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def read_state(survey_dir: Path) -> SurveyState | None:
+    """The survey's state, or None when the folder has no readable ``survey.json``."""
+    try:
+        data = json.loads((survey_dir / STATE_FILE).read_text(encoding="utf-8"))
+        return SurveyState(**data)
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def unfinished(state_dir: str | os.PathLike[str]) -> list[SurveyState]:
+    """Surveys left ``recording`` or ``finishing`` (by a crash or a cut shutdown), oldest first."""
+    root = surveys_dir(state_dir)
+    if not root.is_dir():
+        return []
+    found = []
+    for folder in sorted(root.iterdir()):
+        if not (folder.is_dir() and _ID.match(folder.name)):
+            continue
+        state = read_state(folder)
+        if state is not None and state.state in ("recording", "finishing"):
+            found.append(state)
+    return sorted(found, key=lambda s: s.started)

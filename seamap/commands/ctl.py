@@ -1,0 +1,42 @@
+"""``seamap ctl --config FILE status|start|stop``: talk to the running daemon."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from seamap.errors import SeamapError
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "ctl",
+        help="ask the running daemon for its status, or to start or stop a survey",
+        description=(
+            "Talk to the running daemon through its control socket (state_dir/control.sock): "
+            "status prints its health as JSON; start opens a survey; stop ends it (the "
+            "survey-end pass then writes the result folder)."
+        ),
+    )
+    parser.add_argument("action", choices=("status", "start", "stop"))
+    parser.add_argument("--config", type=Path, help="the daemon's site TOML file")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.control import request
+    from seamap.config import load_config
+
+    config = load_config(args.config)
+    reply = request(Path(config.daemon.state_dir) / "control.sock", args.action)
+    if not reply.get("ok"):
+        raise SeamapError(f"the daemon refused: {reply.get('error')}")
+    if args.action == "status":
+        print(json.dumps(reply["status"], indent=2))
+    elif reply.get("survey") is None:
+        print("no survey was open" if args.action == "stop" else "no survey")
+    else:
+        print(reply["survey"])
+    return 0
