@@ -58,11 +58,14 @@ class MappingWorker:
         max_backlog_frames: int,
         on_pose: Callable[[PoseUpdate], None] | None = None,
         on_tile: Callable[[TileUpdate], None] | None = None,
+        segment: int = 0,
         name: str = "mapping",
     ) -> None:
         self._factory = engine_factory
         self._loop = loop
         self.max_backlog_frames = max_backlog_frames
+        self.segment = segment
+        """The recording segment this live map belongs to."""
         self.on_pose = on_pose
         self.on_tile = on_tile
         self.stats = MapperStats()
@@ -113,6 +116,11 @@ class MappingWorker:
     @property
     def engine_stats(self) -> StreamStats:
         return self._engine_stats
+
+    @property
+    def engine(self) -> StreamingEngine:
+        """The live engine (read it only after ``finish``: it belongs to the thread)."""
+        return self._engine
 
     @property
     def alive(self) -> bool:

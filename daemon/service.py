@@ -40,6 +40,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from daemon.health import HealthMonitor, LiveParts
 from daemon.mapper import MappingWorker
 from daemon.notify import Notifier
@@ -60,6 +62,7 @@ from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, Tile
 from seamap.config import SiteConfig
 from seamap.errors import SeamapError
 from seamap.replay import mount_from_config, pipeline_params
+from seamap.results import write_trajectory
 from seamap.tilespill import DiskSpill
 
 log = logging.getLogger(__name__)
@@ -216,6 +219,7 @@ class Daemon:
             max_backlog_frames=self.config.daemon.max_backlog_frames,
             on_pose=self._on_pose,
             on_tile=self._on_tile,
+            segment=recorder.stats.segment,
         )
         self.survey, self._survey_dir = state, survey_dir
         self.parts.recorder, self.parts.mapper, self.parts.survey = recorder, mapper, state.id
@@ -249,6 +253,8 @@ class Daemon:
         stats = await mapper.finish() if mapper is not None else None
         state.state, state.ended, state.reason = "finishing", time.time(), reason
         assert self._survey_dir is not None
+        if mapper is not None and recorder is not None:
+            state.live[str(recorder.stats.segment)] = self._save_live(mapper, self._survey_dir)
         write_state(self._survey_dir, state)
         log.info(
             "survey ended",
@@ -265,6 +271,38 @@ class Daemon:
         if wait:
             await asyncio.gather(task, return_exceptions=True)
         return state.id
+
+    @staticmethod
+    def _save_live(mapper: MappingWorker, survey_dir: Path) -> dict[str, Any]:
+        """The live map's counters, and its poses as ``live-trajectory-NNN.csv`` (the
+        trajectory.csv format): what the boat computed as it went, for comparison with
+        the survey-end pass."""
+        engine, stats = mapper.engine, mapper.engine_stats
+        live: dict[str, Any] = {
+            "frames_received": mapper.stats.frames_submitted,
+            "frames_mapped": stats.frames_mapped,
+            "frames_rejected": stats.frames_rejected,
+            "frames_skipped": mapper.stats.frames_skipped + stats.frames_skipped,
+            "rejected": dict(stats.rejected),
+            "windows_solved": stats.windows_solved,
+            "frames_reblended": stats.frames_reblended,
+            "engine_restarts": mapper.stats.restarts,
+            "ms_per_frame": {
+                k: round(1000 * v / max(stats.frames_received, 1), 2)
+                for k, v in stats.stage_s.items()
+            },
+        }
+        if engine.frame is not None and engine.poses:
+            segment = mapper.segment
+            name = f"live-trajectory-{segment:03d}.csv"
+            try:
+                write_trajectory(
+                    survey_dir / name, engine.frame, np.array(engine.times), np.array(engine.poses)
+                )
+                live["trajectory"] = name
+            except OSError as exc:
+                log.warning("cannot write the live trajectory", extra={"fields": {"reason": exc}})
+        return live
 
     def _start_pass(self, state: SurveyState) -> asyncio.Task[None]:
         task = asyncio.create_task(self._final_pass(state), name=f"final-pass-{state.id}")

@@ -37,6 +37,9 @@ class SurveyState:
     """Recording segments opened (one per daemon run that recorded into the survey)."""
     reason: str | None = None
     """Why the survey failed, or what ended it ("command", "shutdown")."""
+    live: dict[str, Any] = field(default_factory=dict)
+    """The live map's counters at the end of each recording run (frames received, mapped,
+    rejected, skipped, ...), one entry per segment."""
     result: dict[str, Any] = field(default_factory=dict)
     """Summary of the survey-end pass: frames read/mapped, files written."""
 

@@ -1,22 +1,25 @@
 """Replay: recorded logs through the mapping core into the result folder.
 
 The glue between the drivers (log readers), the core (``mapping.pipeline``) and the result
-writers; the same core the daemon runs live.
+writers; the same core the daemon runs live. A survey recorded in several segments (one
+per daemon start: ``sonar-NNN.oculus``, ``nav-NNN.tlog``) is replayed as one survey.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
+import os
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from daemon.recording import segments
 from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
@@ -27,6 +30,22 @@ from seamap.config import SiteConfig, SonarConfig, load_config
 from seamap.errors import SeamapError
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
 from seamap.tilespill import DiskSpill
+
+LogPaths = Path | Sequence[Path]
+"""One log file, or the segments of one log in time order."""
+
+
+def _log_paths(logs: LogPaths, what: str) -> list[Path]:
+    """``logs`` as a list of paths; SeamapError if it names none (``what``: "sonar log")."""
+    paths = [Path(logs)] if isinstance(logs, str | os.PathLike) else [Path(p) for p in logs]
+    if not paths:
+        raise SeamapError(f"no {what} given")
+    return paths
+
+
+def _names(paths: Sequence[Path]) -> str:
+    """The files for a message: "a.tlog" or "a.tlog + b.tlog"."""
+    return " + ".join(str(path) for path in paths)
 
 
 def mount_from_config(sonar: SonarConfig) -> SonarMount:
@@ -54,22 +73,26 @@ def pipeline_params(config: SiteConfig) -> PipelineParams:
     )
 
 
-def read_navigation(path: Path, config: SiteConfig) -> tuple[NavSamples, dict[str, Any]]:
+def read_navigation(nav_logs: LogPaths, config: SiteConfig) -> tuple[NavSamples, dict[str, Any]]:
+    """The navigation samples of a MAVLink log (or of its .tlog segments, read as one log)
+    and what the report says of them; SeamapError if they cannot place any frame."""
     from drivers.mavlink import read_nav_log
 
+    paths = _log_paths(nav_logs, "navigation log")
+    names = _names(paths)
     nav = read_nav_log(
-        path,
+        paths,
         heading_source=config.mavlink.heading_source,
         imu_source=config.mavlink.imu_source,
         declination_deg=config.mavlink.declination_deg,
     )
     if nav.report.time_reference == "boot":
         raise SeamapError(
-            f"{path}: times are seconds since the autopilot booted (no GPS time in the log), "
+            f"{names}: times are seconds since the autopilot booted (no GPS time in the log), "
             "so they cannot be matched to the sonar's UNIX times"
         )
     if not any(f.usable for f in nav.gnss):
-        raise SeamapError(f"{path}: no usable GNSS fix in the log: frames cannot be placed")
+        raise SeamapError(f"{names}: no usable GNSS fix in the log: frames cannot be placed")
     info = {
         "autopilot": nav.autopilot,
         "time_reference": nav.report.time_reference,
@@ -84,16 +107,24 @@ def read_navigation(path: Path, config: SiteConfig) -> tuple[NavSamples, dict[st
     return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude), info
 
 
-def ping_source(path: Path, skipped: dict[str, int]) -> Callable[[], Iterator[Ping]]:
-    """A callable yielding the log's pings afresh on each call (the pipeline reads the log
-    more than once instead of holding every frame in memory)."""
+def ping_source(sonar_logs: LogPaths, skipped: dict[str, int]) -> Callable[[], Iterator[Ping]]:
+    """A callable yielding the pings of the log (or of its segments, one after another)
+    afresh on each call (the pipeline reads the logs more than once instead of holding
+    every frame in memory). At the end of each pass ``skipped`` holds the corrupt pings
+    and the number of files cut inside an item, over all the segments."""
     from drivers.oculus.logfile import LogReadReport, iter_pings
 
+    paths = _log_paths(sonar_logs, "sonar log")
+
     def pings() -> Iterator[Ping]:
-        report = LogReadReport()
-        yield from iter_pings(path, report)
-        skipped["corrupt_pings"] = report.corrupt_pings
-        skipped["truncated"] = int(report.truncated)
+        corrupt = truncated = 0
+        for path in paths:
+            report = LogReadReport()
+            yield from iter_pings(path, report)
+            corrupt += report.corrupt_pings
+            truncated += int(report.truncated)
+        skipped["corrupt_pings"] = corrupt
+        skipped["truncated"] = truncated
 
     return pings
 
@@ -137,23 +168,33 @@ def stream_survey(
 
 
 def replay(
-    sonar: Path,
-    nav: Path,
+    sonar: LogPaths,
+    nav: LogPaths,
     config_path: Path | None,
     mode: str,
     out: Path,
     *,
+    config: SiteConfig | None = None,
     truth: Path | None = None,
     params: PipelineParams | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Map the logs and write the result folder; returns the report."""
+    """Map the logs and write the result folder; returns the report.
+
+    ``sonar`` and ``nav`` are each one log or the segments of one survey in time order
+    (Oculus logs; .tlog segments, or one .tlog or DataFlash .bin). ``config``, when given,
+    is used instead of loading ``config_path`` (which may then be None). Bad input ends
+    in one SeamapError naming the files.
+    """
     started = time.perf_counter()
-    config = load_config(config_path)
+    sonar_paths = _log_paths(sonar, "sonar log")
+    nav_paths = _log_paths(nav, "navigation log")
+    sonar_names, nav_names = _names(sonar_paths), _names(nav_paths)
+    config = config if config is not None else load_config(config_path)
     params = params or pipeline_params(config)
-    samples, nav_info = read_navigation(nav, config)
+    samples, nav_info = read_navigation(nav_paths, config)
     skipped: dict[str, int] = {}
-    pings = ping_source(sonar, skipped)
+    pings = ping_source(sonar_paths, skipped)
     mount = mount_from_config(config.sonar)
     live: tuple[SurveyResult, StreamStats] | None = None
     # Tiles the boat has left wait on disk, so a long survey fits in memory.
@@ -172,18 +213,18 @@ def replay(
             )  # fmt: skip
     except ValueError as exc:
         spill_dir.cleanup()
-        raise SeamapError(f"{nav}: {exc}") from None
+        raise SeamapError(f"{nav_names}: {exc}") from None
     if result.frames_read == 0:
-        raise SeamapError(f"{sonar}: no sonar pings in the log")
+        raise SeamapError(f"{sonar_names}: no sonar pings in the log")
     if result.frames_mapped == 0:
         first, last = float(result.times.min()), float(result.times.max())
         nav_first = nav_info["first_time"] or 0.0
         nav_last = nav_info["last_time"] or 0.0
         raise SeamapError(
-            f"{sonar}: no frame could be placed: the pings ({first:.0f}..{last:.0f} s) and "
+            f"{sonar_names}: no frame could be placed: the pings ({first:.0f}..{last:.0f} s) and "
             f"the navigation log ({nav_first:.0f}..{nav_last:.0f} s) do not overlap in time"
             if not (nav_first <= last and first <= nav_last)
-            else f"{sonar}: no frame could be placed ({dict(result.rejected)})"
+            else f"{sonar_names}: no frame could be placed ({dict(result.rejected)})"
         )
     t0 = time.perf_counter()
     image, west, north = render(result)
@@ -203,8 +244,8 @@ def replay(
     report: dict[str, Any] = {
         "mode": mode,
         "inputs": {
-            "sonar": str(sonar),
-            "nav": str(nav),
+            "sonar": [str(path) for path in sonar_paths],
+            "nav": [str(path) for path in nav_paths],
             "config": str(config_path) if config_path else None,
         },
         "frames": {
@@ -255,3 +296,26 @@ def replay(
     write_report(out / "report.json", report)
     spill_dir.cleanup()
     return report
+
+
+def replay_survey(
+    survey_dir: Path,
+    config: SiteConfig,
+    out: Path,
+    *,
+    mode: str = "single-stage",
+    truth: Path | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Replay every segment of a recorded survey folder (``sonar-NNN.oculus`` and
+    ``nav-NNN.tlog``, in segment order) into ``out``; returns the report.
+
+    SeamapError naming the folder if it is missing or holds no sonar or no nav segment.
+    """
+    if not survey_dir.is_dir():
+        raise SeamapError(f"{survey_dir}: no such survey folder")
+    sonar, nav = segments(survey_dir)
+    for found, what in ((sonar, "sonar-NNN.oculus"), (nav, "nav-NNN.tlog")):
+        if not found:
+            raise SeamapError(f"{survey_dir}: no {what} segment in the survey folder")
+    return replay(sonar, nav, None, mode, out, config=config, truth=truth, progress=progress)

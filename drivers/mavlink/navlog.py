@@ -3,8 +3,9 @@
 ``framing`` finds and decodes the messages (past damage) and the times; here they become
 IMU, GNSS, heading and attitude samples from the autopilot alone, one source is chosen
 per stream over the whole log, and what the reading met is reported (``NavReadReport``).
-``summarize_nav_log`` gives ``seamap info`` the same counts without keeping samples.
-Memory is bounded by the samples kept (the file is memory-mapped, not read).
+Consecutive .tlog segments of one survey (the recorder starts one per daemon start) are
+read as one log. ``summarize_nav_log`` gives ``seamap info`` the same counts without
+keeping samples. Memory is bounded by the samples kept (files are memory-mapped, not read).
 """
 
 from __future__ import annotations
@@ -13,8 +14,10 @@ import itertools
 import math
 import os
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, TypeVar
 
 from drivers.mavlink import convert
@@ -22,6 +25,7 @@ from drivers.mavlink.framing import (
     Buffer,
     DataFlashScan,
     NavLogError,
+    ScanTally,
     dataflash_records,
     dataflash_time_base,
     detect_format,
@@ -38,7 +42,11 @@ T = TypeVar("T")
 
 @dataclass
 class NavReadReport:
-    """What reading a log met. Times are UNIX seconds (see ``time_reference``)."""
+    """What reading a log met. Times are UNIX seconds (see ``time_reference``).
+
+    For .tlog segments read as one log, ``path`` names them joined by " + " and every
+    count and byte total is over all of them.
+    """
 
     path: str
     format: str
@@ -54,7 +62,8 @@ class NavReadReport:
     bad_timestamps: int = 0
     """Messages dropped because their stamp alone jumped by more than an hour and back."""
     truncated: bool = False
-    """The file ends inside a message (the writer stopped mid-write)."""
+    """The file (for segments: any of them) ends inside a message (the writer stopped
+    mid-write; a note names each such segment)."""
     time_backwards: int = 0
     """Samples stamped earlier than the previous sample of the same stream (file order);
     the sample lists are sorted by time (stable) all the same."""
@@ -326,14 +335,23 @@ def _finish(
 # --- public API --------------------------------------------------------------------------
 
 
+NavPaths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+"""One log, or the .tlog segments of one log in time order."""
+
+
 def read_nav_log(
-    path: str | os.PathLike[str],
+    path: NavPaths,
     *,
     heading_source: str = "auto",
     imu_source: str = "auto",
     declination_deg: float = 0.0,
 ) -> NavLog:
     """Read a .tlog or DataFlash .bin into navigation samples (SI, FRD, UNIX seconds).
+
+    ``path`` may also be a sequence of .tlog segments (consecutive recordings of one
+    survey, in time order): they are read as one log, in the order given, with one
+    report over all of them. Only tlog segments can be joined: several DataFlash .bin
+    files, or a .bin among .tlogs, raise NavLogError.
 
     heading_source / imu_source / declination_deg mean what ``MavlinkConfig`` documents;
     "auto" picks the first source in the documented order that the log carries, decided
@@ -345,19 +363,54 @@ def read_nav_log(
         raise ValueError(f"heading_source {heading_source!r} is not one of {HEADING_SOURCES}")
     if imu_source not in IMU_SOURCES:
         raise ValueError(f"imu_source {imu_source!r} is not one of {IMU_SOURCES}")
+    paths = [path] if isinstance(path, str | os.PathLike) else list(path)
+    if not paths:
+        raise ValueError("read_nav_log: no log given")
     declination_rad = math.radians(declination_deg)
-    with open_log(path) as (where, buf):
-        kind = detect_format(buf, where)
-        report = NavReadReport(str(where), kind, file_bytes=len(buf))
-        if kind == "tlog":
-            return _read_tlog(buf, report, _Vehicle(imu_source, heading_source, declination_rad))
+    with ExitStack() as stack:
+        logs = [stack.enter_context(open_log(one)) for one in paths]
+        kinds = [detect_format(buf, where) for where, buf in logs]
+        if len(logs) > 1 and "dataflash" in kinds:
+            where = logs[kinds.index("dataflash")][0]
+            raise NavLogError(
+                f"{where}: a DataFlash .bin cannot be joined with other logs "
+                "(only .tlog segments can be read as one log)"
+            )
+        report = NavReadReport(
+            " + ".join(str(where) for where, _ in logs),
+            kinds[0],
+            file_bytes=sum(len(buf) for _, buf in logs),
+        )
+        if kinds[0] == "tlog":
+            vehicle = _Vehicle(imu_source, heading_source, declination_rad)
+            return _read_tlog(_tlog_records(logs, report), report, vehicle)
         if imu_source != "auto":
             report.notes.append(f"imu_source {imu_source!r} is MAVLink's; DataFlash gives IMU")
         vehicle = _Vehicle("auto", heading_source, declination_rad)
-        return _read_dataflash(buf, report, vehicle)
+        return _read_dataflash(logs[0][1], report, vehicle)
 
 
-def _read_tlog(buf: Buffer, report: NavReadReport, template: _Vehicle) -> NavLog:
+def _tlog_records(
+    logs: Sequence[tuple[Path, Buffer]], report: NavReadReport
+) -> Iterator[tuple[float, Any]]:
+    """(receive time s, message) of each tlog in turn; their framing counts summed into
+    ``report``. Stamp glitches are judged within each file: the gap between two segments
+    is a real one."""
+    for where, buf in logs:
+        tally = ScanTally()
+        yield from _drop_time_glitches(scan_tlog(buf, tally), report)
+        report.messages += tally.messages
+        report.bytes_skipped += tally.bytes_skipped
+        report.bad_packets += tally.bad_packets
+        if tally.truncated:
+            report.truncated = True
+            if len(logs) > 1:
+                report.notes.append(f"{where}: ends inside a message")
+
+
+def _read_tlog(
+    records: Iterable[tuple[float, Any]], report: NavReadReport, template: _Vehicle
+) -> NavLog:
     vehicles: dict[tuple[int, int], _Vehicle] = {}
     counts: Counter[str] = Counter()
     sent: Counter[tuple[int, int]] = Counter()
@@ -365,7 +418,7 @@ def _read_tlog(buf: Buffer, report: NavReadReport, template: _Vehicle) -> NavLog
     autopilot_id: tuple[int, int] | None = None
     autopilot = "unknown"
     not_vehicles: set[tuple[int, int]] = set()
-    for time, msg in _drop_time_glitches(scan_tlog(buf, report), report):
+    for time, msg in records:
         kind = msg.get_type()
         counts[kind] += 1
         span.add(time)

@@ -19,11 +19,28 @@ def register(subparsers: Any) -> None:
         help="map recorded logs: mosaic.tif, mosaic.png, trajectory.csv, report.json",
         description=(
             "Run the mapping pipeline over a recorded Oculus sonar log and a MAVLink log "
-            "and write the result folder."
+            "(or over the segments of a survey, in order) and write the result folder."
         ),
     )
-    parser.add_argument("--sonar", type=Path, required=True, help="Oculus log (.oculus)")
-    parser.add_argument("--nav", type=Path, required=True, help="MAVLink log (.tlog or .bin)")
+    parser.add_argument(
+        "--sonar",
+        type=Path,
+        action="append",
+        help="Oculus log (.oculus); repeat for the segments of one survey, in time order",
+    )
+    parser.add_argument(
+        "--nav",
+        type=Path,
+        action="append",
+        help="MAVLink log (.tlog or .bin); repeat for .tlog segments, in time order",
+    )
+    parser.add_argument(
+        "--survey",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="a recorded survey folder: replay all its segments (instead of --sonar/--nav)",
+    )
     parser.add_argument("--config", type=Path, default=None, help="site TOML (default: defaults)")
     parser.add_argument("--mode", choices=MODES, default="single-stage")
     parser.add_argument("--out", type=Path, required=True, help="result folder")
@@ -60,24 +77,41 @@ class Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seamap.replay import replay
+    from seamap.config import load_config
+    from seamap.replay import replay, replay_survey
 
-    for label, path in (("sonar log", args.sonar), ("navigation log", args.nav)):
-        if not path.exists():
-            raise SeamapError(f"{path}: no such {label}")
-        if path.is_dir():
-            raise SeamapError(f"{path}: is a directory, not a {label}")
+    if args.survey is not None and (args.sonar or args.nav):
+        raise SeamapError("--survey replays every segment of the folder: not with --sonar/--nav")
+    if args.survey is None:
+        if not (args.sonar and args.nav):
+            raise SeamapError("give --sonar and --nav (or --survey DIR)")
+        for label, paths in (("sonar log", args.sonar), ("navigation log", args.nav)):
+            for path in paths:
+                if not path.exists():
+                    raise SeamapError(f"{path}: no such {label}")
+                if path.is_dir():
+                    raise SeamapError(f"{path}: is a directory, not a {label}")
     progress = Progress()
     try:
-        report = replay(
-            args.sonar,
-            args.nav,
-            args.config,
-            args.mode,
-            args.out,
-            truth=args.truth,
-            progress=progress,
-        )
+        if args.survey is not None:
+            report = replay_survey(
+                args.survey,
+                load_config(args.config),
+                args.out,
+                mode=args.mode,
+                truth=args.truth,
+                progress=progress,
+            )
+        else:
+            report = replay(
+                args.sonar,
+                args.nav,
+                args.config,
+                args.mode,
+                args.out,
+                truth=args.truth,
+                progress=progress,
+            )
     finally:
         progress.done()
     frames = report["frames"]
