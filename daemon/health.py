@@ -27,6 +27,8 @@ SONAR_SILENT_S = 2.0
 """No ping for this long: the sonar counts as down in the status."""
 GNSS_STALE_S = 5.0
 """No usable GNSS fix for this long while the autopilot talks: GNSS lost."""
+START_GRACE_S = 5.0
+"""A link not up yet this long after start-up is not reported down yet."""
 
 
 @dataclass
@@ -58,6 +60,8 @@ class HealthMonitor:
         self._sonar_pings = (time.monotonic(), 0)
         self._sonar_rate = 0.0
         self._flags: dict[str, bool] = {}
+        self._started_mono = time.monotonic()
+        self._mav_up_since: float | None = None
         self._skipped_reported = 0
         self._skipped_warned_at = -float("inf")  # monotonic s; the warning comes at most every 30 s
 
@@ -165,36 +169,48 @@ class HealthMonitor:
 
     # --- events -----------------------------------------------------------------------------
 
-    def _flag(self, name: str, value: bool, on: str, off: str, **fields: Any) -> None:
-        """Log ``on`` (a warning) when ``name`` becomes true and ``off`` when it clears."""
+    def _flag(
+        self, name: str, bad: bool, on: str, off: str | None, since: float, **fields: Any
+    ) -> None:
+        """Log ``on`` (a warning) when condition ``name`` turns bad and ``off`` (info) when
+        it clears. At first the condition is undecided: good is logged as ``off``, bad only
+        once it has lasted ``START_GRACE_S`` since ``since`` (monotonic s)."""
         before = self._flags.get(name)
-        self._flags[name] = value
-        if before is None and not value:
-            return  # a good start is not news
-        if value and not before:
+        if before is None and bad and time.monotonic() - since < START_GRACE_S:
+            return
+        self._flags[name] = bad
+        if bad and not before:
             log.warning(on, extra={"fields": fields})
-        elif before and not value:
+        elif not bad and (before or before is None) and off is not None:
             log.info(off, extra={"fields": fields})
 
     def _events(self, snap: dict[str, Any], parts: LiveParts) -> None:
         sonar, mav = snap["links"]["sonar"], snap["links"]["mavlink"]
+        started = self._started_mono
         if parts.sonar is not None:
             self._flag(
-                "sonar_down", not sonar["up"], "sonar silent", "sonar pinging",
+                "sonar_down", not sonar["up"], "sonar silent", "sonar pinging", started,
                 address=sonar.get("address"), pings=sonar.get("pings"),
             )  # fmt: skip
         if parts.mavlink is not None:
             self._flag(
                 "mavlink_down", not mav["up"], "autopilot link down", "autopilot link up",
-                autopilot=mav.get("autopilot"), packets=mav.get("packets"),
+                started, autopilot=mav.get("autopilot"), packets=mav.get("packets"),
             )  # fmt: skip
-            age = mav.get("gnss_fix_age_s")
-            stale = mav["up"] and (age is None or age > GNSS_STALE_S)
-            self._flag("gnss_lost", stale, "no GNSS fix", "GNSS fix back", age_s=age)
+            if mav["up"]:  # without the autopilot, no news about its GNSS
+                if self._mav_up_since is None:
+                    self._mav_up_since = time.monotonic()
+                age = mav.get("gnss_fix_age_s")
+                stale = age is None or age > GNSS_STALE_S
+                self._flag(
+                    "gnss_lost", stale, "no GNSS fix", "GNSS fix", self._mav_up_since, age_s=age
+                )
+            else:
+                self._mav_up_since = None
         rec = snap["recording"]
         self._flag(
             "recording_stopped", bool(rec.get("stop_reason")),
-            "recording stopped", "recording again", reason=rec.get("stop_reason"),
+            "recording stopped", None, started, reason=rec.get("stop_reason"),
         )  # fmt: skip
         skipped = snap["frames"]["skipped"]
         mono = time.monotonic()

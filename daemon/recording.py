@@ -10,6 +10,8 @@ starts a new segment and never touches the old ones.
 Items are appended at once into a buffer that is pushed to the operating system whenever
 ``flush_interval_s`` has passed since the last push (checked on every item and by
 ``poll``), and ``os.fsync``-ed at most once a second: a power cut loses about a second.
+With ``fsync_in_background`` the fsync runs on a worker thread (one at a time), so a slow
+SD card never stalls the event loop that stamps the next messages.
 Both file formats tolerate a cut tail (the readers report it), so a file is always
 readable up to the last complete item.
 
@@ -31,6 +33,7 @@ import shutil
 import struct
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, Literal
@@ -175,6 +178,7 @@ class SurveyRecorder:
         clock: Callable[[], float] = time.monotonic,
         free_space: Callable[[Path], int] = free_bytes,
         start_time: float | None = None,
+        fsync_in_background: bool = False,
     ) -> None:
         if on_full != "stop":
             raise ValueError(f"on_full {on_full!r}: only 'stop' is implemented")
@@ -192,6 +196,12 @@ class SurveyRecorder:
         self._nav: TlogWriter | None = None
         self._dirty = False
         self._unsynced = False
+        self._fsyncer = (
+            ThreadPoolExecutor(1, thread_name_prefix="seamap-fsync")
+            if fsync_in_background
+            else None
+        )
+        self._fsync_job: Future[None] | None = None
         self._free_probe_at = -float("inf")
         self._free_at_probe = 0
         self._written_since_probe = 0
@@ -360,10 +370,18 @@ class SurveyRecorder:
             self._unsynced = True
             self._last_flush = now
             self.stats.flushes += 1
+        job = self._fsync_job
+        if job is not None and (force_fsync or job.done()):
+            self._fsync_job = None
+            job.result()  # waits when forced; re-raises the background fsync's OSError
         if self._unsynced and (force_fsync or now - self._last_fsync >= FSYNC_INTERVAL_S):
-            for path in (self.sonar_path, self.nav_path):
-                if path is not None:
-                    _fsync_path(path)
+            paths = [path for path in (self.sonar_path, self.nav_path) if path is not None]
+            if self._fsyncer is not None and not force_fsync:
+                if self._fsync_job is not None:
+                    return  # the disk is slow: one fsync at a time, the next one later
+                self._fsync_job = self._fsyncer.submit(_fsync_paths, paths)
+            else:
+                _fsync_paths(paths)
             self._unsynced = False
             self._last_fsync = now
             self.stats.fsyncs += 1
@@ -398,7 +416,14 @@ class SurveyRecorder:
                 self.stats.errors += 1
                 log.debug("closing %s failed: %s", writer.path, exc)
         self._sonar = self._nav = None
+        if self._fsyncer is not None:
+            self._fsyncer.shutdown(wait=True)
         log.log(level, "survey recording stopped (segment %03d): %s", self.stats.segment, reason)
+
+
+def _fsync_paths(paths: list[Path]) -> None:
+    for path in paths:
+        _fsync_path(path)
 
 
 def _fsync_path(path: Path) -> None:

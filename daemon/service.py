@@ -126,7 +126,10 @@ class Daemon:
         await self._shutdown.wait()
         self.notifier.stopping("ending the survey")
         log.info("shutting down", extra={"fields": {"survey": self._survey_id()}})
-        await self.stop_survey("shutdown")
+        await self.stop_survey("shutdown", wait=False)
+        # Nothing records any more: let the sonar go quiet and the autopilot link close
+        # while the survey-end pass runs (health, watchdog and control stay up).
+        await self.supervisor.cancel("sonar", "mavlink")
         while self._passes:
             await asyncio.gather(*self._passes.values(), return_exceptions=True)
         await self.supervisor.stop()
@@ -207,7 +210,9 @@ class Daemon:
         live_tiles = survey_dir / LIVE_TILES
         shutil.rmtree(live_tiles, ignore_errors=True)  # a crashed run's live map is stale
         recorder = SurveyRecorder(
-            survey_dir, min_free_bytes=int(self.config.daemon.min_free_mb * 2**20)
+            survey_dir,
+            min_free_bytes=int(self.config.daemon.min_free_mb * 2**20),
+            fsync_in_background=True,
         )
         state.segments = max(state.segments + 1, recorder.stats.segments)
         write_state(survey_dir, state)

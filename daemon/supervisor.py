@@ -54,6 +54,15 @@ class Supervisor:
             await asyncio.sleep(backoff)
             backoff = min(2 * backoff, BACKOFF_MAX_S)
 
+    async def cancel(self, *names: str) -> None:
+        """Stop the named tasks for good (they are not restarted)."""
+        tasks = [self._tasks.pop(name) for name in names if name in self._tasks]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
     async def stop(self) -> None:
         """Cancel every task and wait for them to end."""
         for task in self._tasks.values():

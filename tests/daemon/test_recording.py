@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -184,6 +185,37 @@ def test_fsync_at_most_once_a_second(tmp_path: Path) -> None:
     assert rec.stats.flushes >= 20  # every item, with flush_interval_s = 0
     assert rec.stats.fsyncs - synced_at == 2  # at 1.0 s and 2.0 s
     rec.close()
+
+
+def test_background_fsync_runs_off_the_caller_and_never_piles_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import daemon.recording as recording
+
+    caller = threading.get_ident()
+    release = threading.Event()
+    synced: list[tuple[int, str]] = []
+
+    def slow_fsync(path: Path) -> None:  # an SD card that takes its time
+        release.wait(5.0)
+        synced.append((threading.get_ident(), path.name))
+
+    clock = FakeClock()
+    rec = SurveyRecorder(
+        tmp_path, flush_interval_s=0.0, min_free_bytes=0, clock=clock, fsync_in_background=True
+    )
+    monkeypatch.setattr(recording, "_fsync_path", slow_fsync)
+    opened = rec.stats.fsyncs
+    for k in range(40):
+        clock.now += 0.125  # 5 s of items while the first fsync hangs
+        assert rec.record_mavlink(*mavlink_packet(k))
+    assert rec.stats.fsyncs - opened == 1 and synced == []  # in flight; the caller went on
+    release.set()
+    rec.close()  # waits for it, then syncs what came since
+    assert rec.stats.fsyncs - opened == 2
+    assert {thread for thread, _ in synced[:2]} != {caller}
+    assert synced[-1][0] == caller and len(synced) == 4
+    assert len(read_tlog(rec.nav_path or tmp_path)) == 40
 
 
 def test_full_disk_probe_stops_cleanly(tmp_path: Path) -> None:

@@ -1,0 +1,97 @@
+"""Running the real daemon (``seamap run``) as a child process against emulators on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from daemon.control import request
+from seamap.config import config_from_dict, dump_config
+from seamap.errors import SeamapError
+
+SEAMAP = str(Path(sys.executable).parent / "seamap")
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def write_config(
+    sim_dir: Path, path: Path, state_dir: Path, sonar_port: int, mavlink_url: str, **daemon: Any
+) -> Path:
+    """The simulated survey's site config pointed at the emulators and ``state_dir``."""
+    data = tomllib.loads((sim_dir / "site.toml").read_text())
+    data.setdefault("daemon", {}).update(
+        state_dir=str(state_dir), survey_autostart=True, health_interval_s=2.0, **daemon
+    )
+    data.setdefault("sonar", {}).update(
+        address="127.0.0.1", tcp_port=sonar_port, status_port=free_udp_port()
+    )
+    data.setdefault("mavlink", {}).update(url=mavlink_url)
+    path.write_text(dump_config(config_from_dict(data)))
+    return path
+
+
+class DaemonProcess:
+    """``seamap run --config`` as a child; stderr goes to ``log_path`` (appended)."""
+
+    def __init__(self, config: Path, state_dir: Path, log_path: Path) -> None:
+        self.config = config
+        self.state_dir = state_dir
+        self.log_path = log_path
+        self.proc: asyncio.subprocess.Process | None = None
+        self.statuses: list[dict[str, Any]] = []
+        self._poller: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        with open(self.log_path, "ab") as log:
+            self.proc = await asyncio.create_subprocess_exec(
+                SEAMAP, "run", "--config", str(self.config), stderr=log, stdout=log,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )  # fmt: skip
+        self._poller = asyncio.create_task(self._poll_status())
+
+    async def _poll_status(self) -> None:
+        """Keep every status snapshot the control socket gives, twice a second."""
+        sock = self.state_dir / "control.sock"
+        while True:
+            await asyncio.sleep(0.5)
+            try:
+                reply = await asyncio.to_thread(request, sock, "status", 2.0)
+            except SeamapError:
+                continue
+            if reply.get("ok"):
+                self.statuses.append(reply["status"])
+
+    async def wait_status(self, check: Any, timeout_s: float) -> dict[str, Any]:
+        """Wait until a status snapshot taken from now on satisfies ``check``; that snapshot."""
+        deadline = time.monotonic() + timeout_s
+        seen = len(self.statuses)
+        while time.monotonic() < deadline:
+            for status in self.statuses[seen:]:
+                if check(status):
+                    return status
+            seen = len(self.statuses)
+            assert self.proc is not None and self.proc.returncode is None, self.log()
+            await asyncio.sleep(0.2)
+        raise AssertionError(f"no status met the condition in {timeout_s} s\n{self.log()}")
+
+    async def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 180.0) -> int:
+        assert self.proc is not None
+        if self._poller is not None:
+            self._poller.cancel()
+            await asyncio.gather(self._poller, return_exceptions=True)
+        self.proc.send_signal(sig)
+        return await asyncio.wait_for(self.proc.wait(), timeout_s)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
