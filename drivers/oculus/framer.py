@@ -102,6 +102,15 @@ class OculusFramer:
         self._buf += data
         return self._drain(final=False)
 
+    def holds_complete_message(self) -> bool:
+        """Whether the held bytes begin with a whole message, held back only because its
+        last bytes could start the next header (it comes out with the next bytes or
+        ``flush()``; a receiver stamps it with the time its bytes arrived)."""
+        buf = self._buf
+        if len(buf) < HEADER_SIZE or not buf.startswith(OCULUS_MAGIC):
+            return False
+        return len(buf) >= HEADER_SIZE + MessageHeader.unpack(buf[:HEADER_SIZE]).payload_size
+
     def flush(self) -> list[bytes]:
         """Emit a complete held-back message (end of stream or idle link); keep partials."""
         return self._drain(final=True)

@@ -274,9 +274,14 @@ class OculusLink:
             return  # the receive side sees the loss and reconnects
 
     async def _receive(self, reader: asyncio.StreamReader) -> AsyncGenerator[Ping, None]:
-        """Pings from one connection; returns on EOF, raises _Silence on a quiet sonar."""
+        """Pings from one connection; returns on EOF, raises _Silence on a quiet sonar.
+
+        A message is stamped with the time of the read that completed it, also when the
+        framer released it later (held back because its last byte could start a header).
+        """
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.timing.silence_timeout_s
+        last_data = time.time()
         while True:
             remaining = deadline - loop.time()
             if remaining <= 0:
@@ -287,16 +292,22 @@ class OculusLink:
                 )
             except TimeoutError:
                 messages = self._framer.flush()
+                stamps = [last_data] * len(messages)
             else:
+                received = time.time()
                 if not data:
                     log.warning("Oculus: connection closed by the sonar, reconnecting")
                     return
                 self.stats.bytes_received += len(data)
+                held = self._framer.holds_complete_message()
                 messages = self._framer.feed(data)
+                stamps = [received] * len(messages)
+                if held and stamps:
+                    stamps[0] = last_data
+                last_data = received
             self.stats.bytes_skipped = self._framer.bytes_skipped
-            received = time.time()
-            for message in messages:
-                ping = self._handle(message, received)
+            for message, stamp in zip(messages, stamps, strict=True):
+                ping = self._handle(message, stamp)
                 if ping is not None:
                     deadline = loop.time() + self.timing.silence_timeout_s
                     yield ping

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 
 import numpy as np
@@ -157,6 +158,47 @@ def test_link_reconnects_after_a_dropped_connection() -> None:
         assert ids == sorted(set(ids)), "pings come once and in order"
         assert link.stats.reconnects == 1 and sonar.connections == 2
         assert link.stats.parse_errors == 0
+
+    run(main)
+
+
+def test_a_ping_held_back_by_the_framer_keeps_its_arrival_stamp() -> None:
+    """A ping whose last byte is 0x53 (the first byte of the magic) waits in the framer
+    for the next bytes; its stamp is still the time its own bytes arrived."""
+    fire = FireSettings().to_message()
+    pings = []
+    for k in range(4):
+        ping = make_ping(n_beams=32, n_ranges=20, seed=k, ping_id=k)
+        ping.image[-1, -1] = 0x53
+        pings.append(encode_ping(ping, fire))
+    assert all(message.endswith(b"\x53") for message in pings)
+    slow = LinkTiming(idle_flush_s=5.0, silence_timeout_s=10.0)
+
+    async def main() -> None:
+        sent: list[float] = []
+        handlers: list[asyncio.Task[object]] = []
+
+        async def serve(_: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            handlers.append(asyncio.current_task())  # type: ignore[arg-type]
+            for message in pings:
+                sent.append(time.time())
+                writer.write(message)
+                await writer.drain()
+                await asyncio.sleep(0.2)
+            await asyncio.sleep(1.0)
+            writer.close()
+
+        server = await asyncio.start_server(serve, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        link = OculusLink("127.0.0.1", tcp_port=port, timing=slow)
+        async with server, contextlib.aclosing(link.pings()) as stream:
+            got = await take(stream, 3)  # the 4th waits for bytes that never come
+        for handler in handlers:
+            handler.cancel()
+        await asyncio.gather(*handlers, return_exceptions=True)
+        errors = [ping.time - t for ping, t in zip(got, sent, strict=False)]
+        assert [p.ping_id for p in got] == [0, 1, 2]
+        assert max(abs(e) for e in errors) < 0.1, errors  # not the 0.2 s until the next ping
 
     run(main)
 

@@ -4,7 +4,9 @@
 ``tools.sim.simulate`` writes) at their recorded timing divided by ``time_scale``, re-packed
 with its own sequence numbers as system 1 / component 1, and sends its own HEARTBEAT
 (MAV_TYPE_SURFACE_BOAT, MAV_AUTOPILOT_ARDUPILOTMEGA) every ``heartbeat_period_s`` of wall
-time (the log's own heartbeats and the ground station's messages are not replayed).
+time (the log's own heartbeats and the ground station's messages are not replayed). Given
+a ``tools.emulators.playback.PlaybackClock``, it sends each message at the clock's wall time
+of its log stamp instead, in step with the other devices on that clock.
 
 It answers MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK (accepted, or unsupported when
 ``accept_intervals`` is False) and thins a stream to the requested interval where it can:
@@ -32,7 +34,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -40,7 +42,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from drivers.mavlink.framing import open_log, scan_tlog
 from drivers.mavlink.navlog import NavReadReport
 
-__all__ = ["AutopilotEmulator", "ClientLog"]
+if TYPE_CHECKING:
+    from tools.emulators.playback import PlaybackClock
+
+__all__ = ["AutopilotEmulator", "ClientLog", "read_autopilot_messages"]
 
 SYSID = 1
 COMPID = 1
@@ -60,8 +65,9 @@ class ClientLog:
     counts: Counter[str] = field(default_factory=Counter)
 
 
-def _messages_from_tlog(path: str | os.PathLike[str]) -> list[tuple[float, Any]]:
-    """(receive time s, message) of the autopilot's (system 1) messages, HEARTBEAT aside."""
+def read_autopilot_messages(path: str | os.PathLike[str]) -> list[tuple[float, Any]]:
+    """(receive time, UNIX s; message) of a .tlog's autopilot (system 1) messages in file
+    order, HEARTBEAT aside: what ``AutopilotEmulator`` replays."""
     with open_log(path) as (where, buf):
         report = NavReadReport(str(where), "tlog")
         return [
@@ -77,6 +83,11 @@ class AutopilotEmulator:
     messages: (time s, pymavlink message) in time order; time_scale > 1 replays faster;
     wait_for_client: start the replay when the client's first packet arrives (so nothing
     is lost before it listens); heartbeats go out from the start regardless.
+    clock: send each message at ``clock.wall(time)`` (waiting for the clock to start)
+    instead; the clock's owner then decides when the replay starts, so ``wait_for_client``
+    is not consulted and ``time_scale`` must stay 1 (the clock's ``speed`` sets the pace).
+    ``client_seen`` is set at the client's first packet; ``replayed`` counts the log's
+    messages sent (not thinned out, paused or lost while stopped).
     """
 
     def __init__(
@@ -88,14 +99,19 @@ class AutopilotEmulator:
         accept_intervals: bool = True,
         wait_for_client: bool = True,
         seed: int = 0,
+        clock: PlaybackClock | None = None,
     ) -> None:
+        if clock is not None and time_scale != 1.0:
+            raise ValueError("AutopilotEmulator: with a clock, the clock's speed sets the pace")
         self.messages = list(messages)
         self.time_scale = time_scale
         self.heartbeat_period_s = heartbeat_period_s
         self.accept_intervals = accept_intervals
         self.wait_for_client = wait_for_client
+        self.clock = clock
         self.client = ClientLog()
         self.sent: Counter[str] = Counter()
+        self.replayed = 0
         self.dropped_writes = 0
         self.done = asyncio.Event()
         self.device_path: Path | None = None
@@ -107,7 +123,7 @@ class AutopilotEmulator:
         self._every: dict[str, int] = {}
         self._gps_paused_until = 0.0
         self._rng = random.Random(seed)
-        self._client_seen = asyncio.Event()
+        self.client_seen = asyncio.Event()
         self._running = False
         self._fd: int | None = None
         self._slave_fd: int | None = None
@@ -120,7 +136,7 @@ class AutopilotEmulator:
     @classmethod
     def from_tlog(cls, path: str | os.PathLike[str], **options: Any) -> AutopilotEmulator:
         """An emulator replaying the autopilot's messages of a .tlog."""
-        return cls(_messages_from_tlog(path), **options)
+        return cls(read_autopilot_messages(path), **options)
 
     def _periods(self) -> dict[str, float]:
         """Median interval (s, log time) between messages of each type."""
@@ -270,7 +286,7 @@ class AutopilotEmulator:
     def _on_message(self, msg: Any) -> None:
         kind = msg.get_type()
         self.client.counts[kind] += 1
-        self._client_seen.set()
+        self.client_seen.set()
         if kind == "HEARTBEAT":
             self.client.heartbeats.append((msg.type, msg.autopilot))
         elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -315,24 +331,37 @@ class AutopilotEmulator:
             await asyncio.sleep(self.heartbeat_period_s)
 
     async def _replay(self) -> None:
+        seen: Counter[str] = Counter()
+        if self.clock is not None:
+            for stamp, msg in self.messages:
+                await self.clock.sleep_until(stamp)
+                self._replay_one(msg, seen)
+            self.done.set()
+            return
         if self.wait_for_client:
-            await self._client_seen.wait()
+            await self.client_seen.wait()
         if not self.messages:
             self.done.set()
             return
         start_wall = time.monotonic()
         first = self.messages[0][0]
-        seen: Counter[str] = Counter()
         for stamp, msg in self.messages:
             delay = start_wall + (stamp - first) / self.time_scale - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
-            kind = msg.get_type()
-            every = self._every.get(kind, 1)
-            seen[kind] += 1
-            if every == 0 or (seen[kind] - 1) % every:
-                continue
-            if kind == "GPS_RAW_INT" and time.time() < self._gps_paused_until:
-                continue
-            self._send(msg)
+            self._replay_one(msg, seen)
         self.done.set()
+
+    def _replay_one(self, msg: Any, seen: Counter[str]) -> None:
+        """Send one logged message unless its stream is thinned out or the GPS is paused;
+        ``seen`` counts the log's messages by type so far."""
+        kind = msg.get_type()
+        every = self._every.get(kind, 1)
+        seen[kind] += 1
+        if every == 0 or (seen[kind] - 1) % every:
+            return
+        if kind == "GPS_RAW_INT" and time.time() < self._gps_paused_until:
+            return
+        if self._running:
+            self.replayed += 1
+        self._send(msg)

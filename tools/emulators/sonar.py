@@ -7,6 +7,12 @@ honours the fire's 8/16-bit data size, send-gain flag and gain/gamma (echoed bac
 range demand is informational (the source's images are sent as they are). The ping source
 is shared across connections, so pings resume where they stopped after a reconnect.
 
+Given a ``tools.emulators.playback.PlaybackClock`` the emulator plays its source in the
+source's own time instead: each ping is sent at ``clock.wall(ping.time)`` (waiting for the
+clock to start), if a client is connected and a fire is live then; a ping whose time
+passes while the sonar is not fired (no client, or the fire lapsed) is skipped and counted
+in ``pings_missed``, never queued, as a real sonar does not ping unfired.
+
 Faults for tests: ``drop_connection()`` aborts the client's socket; ``inject_garbage(n)``
 writes ``n`` random bytes between two messages.
 """
@@ -17,8 +23,9 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,10 +42,14 @@ from drivers.oculus.protocol import (
 )
 from mapping.samples import Ping
 
+if TYPE_CHECKING:
+    from tools.emulators.playback import PlaybackClock
+
 log = logging.getLogger(__name__)
 
 M1200D_PART_NUMBER = 1042
 _SRC_DEVICE_ID = 0x1ED4
+_HANDLER_EXIT_S = 0.5  # how long close() lets client handlers end by themselves
 
 
 def _with_data_size(image: np.ndarray, want_16bit: bool) -> np.ndarray:
@@ -71,7 +82,11 @@ class SonarEmulator:
     pings: the ping source, consumed as pings are sent. tcp_port: 0 picks a free port
     (read ``tcp_port`` after ``start()``). status_to: (host, port) for the status messages,
     None for none. status_interval_s, fire_timeout_s: seconds. rate_hz: overrides the fired
-    ping rate (Hz), e.g. to run tests fast.
+    ping rate (Hz), e.g. to run tests fast. clock: send each ping at ``clock.wall(ping.time)``
+    rather than at a rate (see the module docstring; ``rate_hz`` is then unused).
+
+    Counters: ``pings_sent``; ``pings_missed`` (clock only: pings skipped while not fired).
+    ``done`` is set when the source is exhausted.
     """
 
     def __init__(
@@ -86,6 +101,7 @@ class SonarEmulator:
         rate_hz: float | None = None,
         device_id: int = 1,
         seed: int = 0,
+        clock: PlaybackClock | None = None,
     ) -> None:
         self.host = host
         self.status_to = status_to
@@ -94,8 +110,11 @@ class SonarEmulator:
         self.rate_hz = rate_hz
         self.device_id = device_id
         self.fires_received = 0
+        self.clock = clock
         self.pings_sent = 0
+        self.pings_missed = 0
         self.connections = 0
+        self.done = asyncio.Event()
         self.last_fire: SimpleFire | None = None
         self._requested_port = tcp_port
         self._pings = iter(pings)
@@ -104,6 +123,7 @@ class SonarEmulator:
         self._fired = asyncio.Event()
         self._server: asyncio.Server | None = None
         self._status_task: asyncio.Task[None] | None = None
+        self._player_task: asyncio.Task[None] | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._handlers: set[asyncio.Task[object]] = set()
 
@@ -123,15 +143,23 @@ class SonarEmulator:
         self._server = await asyncio.start_server(self._serve, self.host, self._requested_port)
         if self.status_to is not None:
             self._status_task = asyncio.create_task(self._broadcast_status(self.status_to))
+        if self.clock is not None:
+            self._player_task = asyncio.create_task(self._play(self.clock))
 
     async def close(self) -> None:
-        if self._status_task is not None:
-            self._status_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._status_task
+        for own in (self._status_task, self._player_task):
+            if own is not None:
+                own.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await own
+        self._status_task = self._player_task = None
         if self._server is not None:
             self._server.close()
         self.drop_connection()
+        if self._handlers:
+            # An aborted connection ends its handler; cancel only what is still running
+            # after a moment (Python 3.11's start_server logs a cancelled handler as an error).
+            await asyncio.wait(set(self._handlers), timeout=_HANDLER_EXIT_S)
         for task in list(self._handlers):
             task.cancel()
         await asyncio.gather(*self._handlers, return_exceptions=True)
@@ -155,6 +183,12 @@ class SonarEmulator:
         if self._writer is not None:
             self._writer.transport.abort()
             self._writer = None
+
+    async def wait_fired(self) -> None:
+        """Return once a fire asking for pings is live (see ``pinging``)."""
+        while not self.pinging:
+            self._fired.clear()
+            await self._fired.wait()
 
     def inject_garbage(self, n_bytes: int) -> None:
         """Write ``n_bytes`` random bytes to the client between two messages.
@@ -214,7 +248,8 @@ class SonarEmulator:
         self.drop_connection()  # one client at a time
         self._writer = writer
         self.connections += 1
-        pinger = asyncio.create_task(self._send_pings(writer))
+        # With a clock, one player task sends to whichever client is connected.
+        pinger = asyncio.create_task(self._send_pings(writer)) if self.clock is None else None
         framer = OculusFramer()
         try:
             while data := await reader.read(1 << 16):
@@ -223,9 +258,10 @@ class SonarEmulator:
         except OSError:
             pass
         finally:
-            pinger.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await pinger
+            if pinger is not None:
+                pinger.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await pinger
             if self._writer is writer:
                 self._writer = None
             writer.transport.abort()
@@ -256,6 +292,7 @@ class SonarEmulator:
                 ping = next(self._pings, None)
                 if ping is None:
                     log.info("sonar emulator: ping source exhausted")
+                    self.done.set()
                     return
                 writer.write(encode_ping(ping, fire))
                 await writer.drain()
@@ -263,3 +300,43 @@ class SonarEmulator:
                 await asyncio.sleep(self._period_s(fire))
         except OSError:
             return
+
+    async def _play(self, clock: PlaybackClock) -> None:
+        """Send each ping of the source at ``clock.wall(ping.time)`` if fired then, else skip
+        it. The next ping is read (and encoded for the last fire) in a worker thread while
+        waiting, so that a large ping does not hold up the event loop at its send time."""
+        ahead: tuple[Ping, SimpleFire | None, bytes | None] | None = await asyncio.to_thread(
+            _read_ahead, self._pings, self.last_fire
+        )
+        while ahead is not None:
+            ping, encoded_for, message = ahead
+            await clock.sleep_until(ping.time)
+            fire, writer = self._live_fire(), self._writer
+            if fire is None or writer is None:
+                self.pings_missed += 1
+            else:
+                if message is None or fire != encoded_for:
+                    message = encode_ping(ping, fire)
+                try:
+                    writer.write(message)
+                    await writer.drain()
+                except OSError:  # the connection died under the write: lost with it
+                    self.pings_missed += 1
+                else:
+                    self.pings_sent += 1
+            ahead = await asyncio.to_thread(_read_ahead, self._pings, self.last_fire)
+        log.info("sonar emulator: ping source exhausted")
+        self.done.set()
+
+
+def _read_ahead(
+    pings: Iterator[Ping], fire: SimpleFire | None
+) -> tuple[Ping, SimpleFire | None, bytes | None] | None:
+    """The next ping, the fire it was encoded for and its encoding (None without a fire);
+    None once ``pings`` is exhausted. Runs in a worker thread."""
+    ping = next(pings, None)
+    if ping is None:
+        return None
+    if fire is None or fire.ping_rate == PingRate.STANDBY:
+        return ping, None, None
+    return ping, fire, encode_ping(ping, fire)
