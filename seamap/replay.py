@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from daemon.recording import segments
+from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
 from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
@@ -310,7 +311,9 @@ def replay_survey(
     """Replay every segment of a recorded survey folder (``sonar-NNN.oculus`` and
     ``nav-NNN.tlog``, in segment order) into ``out``; returns the report.
 
-    SeamapError naming the folder if it is missing or holds no sonar or no nav segment.
+    Empty segments (a daemon run that heard nothing from that device) are left out.
+    SeamapError naming the folder if it is missing or holds no sonar or no nav segment, or
+    nothing was recorded in them.
     """
     if not survey_dir.is_dir():
         raise SeamapError(f"{survey_dir}: no such survey folder")
@@ -318,4 +321,17 @@ def replay_survey(
     for found, what in ((sonar, "sonar-NNN.oculus"), (nav, "nav-NNN.tlog")):
         if not found:
             raise SeamapError(f"{survey_dir}: no {what} segment in the survey folder")
+    nav = [path for path in nav if _size(path) > 0]
+    if not nav:
+        raise SeamapError(f"{survey_dir}: no MAVLink packet was recorded (nav segments empty)")
+    sonar = [path for path in sonar if _size(path) > V1_FILE_HEADER_SIZE]
+    if not sonar:
+        raise SeamapError(f"{survey_dir}: no sonar message was recorded (sonar segments empty)")
     return replay(sonar, nav, None, mode, out, config=config, truth=truth, progress=progress)
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0

@@ -49,6 +49,8 @@ _SCAN_CHUNK = 1 << 20
 _QT_SIZE = struct.Struct(">I")
 
 assert _FILE_HEADER.size == 48
+V1_FILE_HEADER_SIZE = _FILE_HEADER.size
+"""Bytes of a v1 log's file header: a log no longer than this holds no item."""
 assert _ITEM_HEADER.size == 40
 
 PathLike = str | Path
