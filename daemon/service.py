@@ -45,6 +45,7 @@ import numpy as np
 from daemon.health import HealthMonitor, LiveParts
 from daemon.mapper import MappingWorker
 from daemon.notify import Notifier
+from daemon.publisher import ZenohPublisher
 from daemon.recording import SurveyRecorder
 from daemon.supervisor import Supervisor
 from daemon.survey import (
@@ -64,6 +65,7 @@ from seamap.errors import SeamapError
 from seamap.replay import mount_from_config, pipeline_params
 from seamap.results import write_trajectory
 from seamap.tilespill import DiskSpill
+from seamap.zenoh_io import open_session
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +91,7 @@ class Daemon:
         self._survey_dir: Path | None = None
         self._passes: dict[str, asyncio.Task[None]] = {}
         self._pass_progress: dict[str, str] = {}
+        self.publisher: ZenohPublisher | None = None
         self._shutdown = asyncio.Event()
         self._last_recorder_poll = time.monotonic()
         self._signals = 0
@@ -98,6 +101,9 @@ class Daemon:
     async def run(self) -> int:
         self._prepare_state_dir()
         loop = asyncio.get_running_loop()
+        self.publisher = ZenohPublisher(
+            self.config.daemon.vehicle, surveys_dir(self.state_dir), loop, self._control
+        )
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._on_signal, sig)
         for name, task in (
@@ -107,6 +113,7 @@ class Daemon:
             ("health", self._health_task),
             ("watchdog", self._watchdog_task),
             ("control", self._control_task),
+            ("zenoh", self._zenoh_task),
         ):
             self.supervisor.spawn(name, task)
         self._recover()
@@ -133,6 +140,7 @@ class Daemon:
         while self._passes:
             await asyncio.gather(*self._passes.values(), return_exceptions=True)
         await self.supervisor.stop()
+        self.publisher.close()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(sig)
         self.notifier.close()
@@ -223,7 +231,7 @@ class Daemon:
             loop=asyncio.get_running_loop(),
             max_backlog_frames=self.config.daemon.max_backlog_frames,
             on_pose=self._on_pose,
-            on_tile=self._on_tile,
+            on_tile=lambda update: self._on_tile(state.id, update),
             segment=recorder.stats.segment,
         )
         self.survey, self._survey_dir = state, survey_dir
@@ -374,7 +382,12 @@ class Daemon:
         def progress(stage: str, done: int, total: int) -> None:
             self._pass_progress[survey_id] = f"{stage} {done}/{total}"
 
-        return replay_survey(survey_dir, self.config, survey_dir, progress=progress)
+        report = replay_survey(survey_dir, self.config, survey_dir, progress=progress)
+        if self.publisher is not None:
+            self._pass_progress[survey_id] = "publishing tiles"
+            report["tiles_published"] = self.publisher.final_tiles(survey_id, survey_dir)
+            self.publisher.survey_ended(survey_id)
+        return report
 
     async def _extend_stop_timeout(self, survey_id: str) -> None:
         """While a pass runs during shutdown, keep systemd's stop timeout ahead of it."""
@@ -439,11 +452,16 @@ class Daemon:
     # --- mapping output ----------------------------------------------------------------------
 
     def _on_pose(self, update: PoseUpdate) -> None:
+        # Refinements of older frames update the map, not "where the boat is".
         if self.latest_pose is None or update.time >= self.latest_pose.time:
             self.latest_pose = update
+            if self.publisher is not None:
+                self.publisher.pose(update)
 
-    def _on_tile(self, update: TileUpdate) -> None:
+    def _on_tile(self, survey: str, update: TileUpdate) -> None:
         self.tiles_published += 1
+        if self.publisher is not None:
+            self.publisher.tile(survey, update)
 
     # --- housekeeping ------------------------------------------------------------------------
 
@@ -460,6 +478,8 @@ class Daemon:
         next_line = time.monotonic() + min(interval, 5.0)
         while True:
             self.health.sample(self.parts)
+            if self.publisher is not None:
+                self.publisher.status(self.status())
             if time.monotonic() >= next_line:
                 self.health.log_line()
                 self.notifier.status(self._status_text())
@@ -485,6 +505,34 @@ class Daemon:
             else:
                 log.error("watchdog withheld: recorder or mapping stalled")
             await asyncio.sleep(interval / 2)
+
+    async def _zenoh_task(self) -> None:
+        assert self.publisher is not None
+        session = await asyncio.to_thread(open_session, self.config.zenoh)
+        self.publisher.attach(session)
+        z = self.config.zenoh
+        log.info(
+            "zenoh session open",
+            extra={"fields": {"mode": z.mode, "listen": ",".join(z.listen) or None,
+                              "connect": ",".join(z.connect) or None}},
+        )  # fmt: skip
+        try:
+            await asyncio.Event().wait()
+        finally:
+            closing = self.publisher.detach()
+            if closing is not None:
+                await asyncio.to_thread(closing.close)
+
+    async def _control(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A survey request from zenoh: ``{"action": "start"|"stop"|"status"}``."""
+        action = request.get("action")
+        if action == "start":
+            return {"ok": True, "survey": await self.start_survey("zenoh")}
+        if action == "stop":
+            return {"ok": True, "survey": await self.stop_survey("zenoh", wait=False)}
+        if action == "status":
+            return {"ok": True, "survey": self._survey_id(), "status": self.status()}
+        return {"ok": False, "error": f"unknown action {action!r} (start, stop, status)"}
 
     async def _control_task(self) -> None:
         from daemon.control import serve_control

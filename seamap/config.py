@@ -101,8 +101,16 @@ class MavlinkConfig:
 @dataclass(frozen=True)
 class ZenohConfig:
     mode: str = "peer"
+    """zenoh session mode: "peer", "client" (through a router) or "router"."""
     listen: list[str] = field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
+    """Endpoints the session listens on (zenoh locators, e.g. "tcp/0.0.0.0:7447")."""
     connect: list[str] = field(default_factory=list)
+    """Endpoints the session connects to (a router, or a peer on shore)."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast (off: only listen/connect)."""
+    config_file: str = ""
+    """A zenoh JSON5 configuration file read first (TLS, user/password authentication,
+    access control); mode, listen, connect and multicast_scouting above override it."""
 
 
 @dataclass(frozen=True)

@@ -9,12 +9,14 @@ import socket
 import sys
 import time
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from daemon.control import request
-from seamap.config import config_from_dict, dump_config
+from seamap.config import ZenohConfig, config_from_dict, dump_config
 from seamap.errors import SeamapError
+from seamap.zenoh_io import open_session
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")
 
@@ -25,10 +27,29 @@ def free_udp_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def free_tcp_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def zenoh_table(port: int | None = None) -> dict[str, Any]:
+    """A zenoh peer on 127.0.0.1 only (a free port unless given), no multicast scouting."""
+    port = free_tcp_port() if port is None else port
+    return {"listen": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False}
+
+
 def write_config(
-    sim_dir: Path, path: Path, state_dir: Path, sonar_port: int, mavlink_url: str, **daemon: Any
+    sim_dir: Path,
+    path: Path,
+    state_dir: Path,
+    sonar_port: int,
+    mavlink_url: str,
+    zenoh_port: int | None = None,
+    **daemon: Any,
 ) -> Path:
-    """The simulated survey's site config pointed at the emulators and ``state_dir``."""
+    """The simulated survey's site config pointed at the emulators and ``state_dir``, its
+    zenoh endpoint on 127.0.0.1."""
     data = tomllib.loads((sim_dir / "site.toml").read_text())
     data.setdefault("daemon", {}).update(
         state_dir=str(state_dir), survey_autostart=True, health_interval_s=2.0, **daemon
@@ -37,6 +58,7 @@ def write_config(
         address="127.0.0.1", tcp_port=sonar_port, status_port=free_udp_port()
     )
     data.setdefault("mavlink", {}).update(url=mavlink_url)
+    data["zenoh"] = zenoh_table(zenoh_port)
     path.write_text(dump_config(config_from_dict(data)))
     return path
 
@@ -95,3 +117,54 @@ class DaemonProcess:
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")
+
+
+@dataclass
+class Heard:
+    key: str
+    payload: bytes
+    attachment: bytes | None
+    encoding: str
+    at: float
+
+
+class ZenohObserver:
+    """A shore-side zenoh client on 127.0.0.1 that keeps everything under ``seamap/**``."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
+        self.heard: list[Heard] = []
+        self.session: Any = None
+        self._subscriber: Any = None
+
+    def open(self) -> None:
+        self.session = open_session(ZenohConfig(mode="client", listen=[], connect=[self.endpoint]))
+        self._subscriber = self.session.declare_subscriber("seamap/**", self._keep)
+
+    def _keep(self, sample: Any) -> None:
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+        self.heard.append(
+            Heard(str(sample.key_expr), sample.payload.to_bytes(), attachment,
+                  str(sample.encoding), time.monotonic())
+        )  # fmt: skip
+
+    def get(self, selector: str, payload: bytes | None = None) -> list[Heard]:
+        replies = []
+        for reply in self.session.get(selector, payload=payload, timeout=10.0):
+            if reply.ok is None:
+                continue
+            sample = reply.ok
+            attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+            replies.append(
+                Heard(str(sample.key_expr), sample.payload.to_bytes(), attachment,
+                      str(sample.encoding), time.monotonic())
+            )  # fmt: skip
+        return replies
+
+    def alive(self, vehicle: str) -> bool:
+        return any(True for _ in self.session.liveliness().get(f"seamap/{vehicle}/alive"))
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None

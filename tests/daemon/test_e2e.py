@@ -1,7 +1,9 @@
 """End to end on loopback: the sonar and autopilot emulators play a simulated survey, the
-real daemon (``seamap run``, a child process) records and maps it live, and on SIGTERM its
-survey-end pass writes the result folder, which equals ``seamap replay`` of what it
-recorded; the recording holds every ping and navigation message that was played."""
+real daemon (``seamap run``, a child process) records and maps it live and publishes on
+zenoh (127.0.0.1) what the contract says; a survey stop request over zenoh ends the survey,
+whose survey-end pass writes the result folder, equal to ``seamap replay`` of what it
+recorded; the recording holds every ping and navigation message that was played, and a
+late subscriber gets every final tile, which together are the result's mosaic."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import csv
 import json
 import signal
 import subprocess
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,16 @@ import rasterio
 from drivers.mavlink.navlog import read_nav_log
 from drivers.oculus.logfile import iter_pings
 from seamap.replay import replay
-from tests.daemon.harness import SEAMAP, DaemonProcess, free_udp_port, write_config
+from seamap.zenoh_io import TileInfo, decode_tile, parse_tile_key
+from tests.daemon.harness import (
+    SEAMAP,
+    DaemonProcess,
+    Heard,
+    ZenohObserver,
+    free_tcp_port,
+    free_udp_port,
+    write_config,
+)
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
 
@@ -40,6 +52,10 @@ class Run:
     pings_missed: int
     nav_sent: dict[str, int]
     config: Path
+    heard: list[Heard]
+    late: list[Heard]
+    control: list[Heard]
+    alive: bool
 
 
 @pytest.fixture(scope="module")
@@ -50,25 +66,43 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     state_dir = root / "state"
 
     async def main() -> Run:
-        mavlink_port = free_udp_port()
+        mavlink_port, zenoh_port = free_udp_port(), free_tcp_port()
+        endpoint = f"tcp/127.0.0.1:{zenoh_port}"
         async with SurveyPlayback(
             sim / "sonar.oculus", sim / "nav.tlog", mavlink="udp", mavlink_target_port=mavlink_port
         ) as play:
             config = write_config(
                 sim, root / "site.toml", state_dir, play.sonar.tcp_port,
-                f"udpin:127.0.0.1:{mavlink_port}",
+                f"udpin:127.0.0.1:{mavlink_port}", zenoh_port,
             )  # fmt: skip
             daemon = DaemonProcess(config, state_dir, root / "daemon.log")
             await daemon.start()
+            shore = ZenohObserver(endpoint)
+            await daemon.wait_status(lambda s: True, 30)
+            await asyncio.to_thread(shore.open)
             await asyncio.wait_for(play.done.wait(), PINGS / 10 + 60)
             # Let the last pings clear the reorder window and the recorder's flush.
             await daemon.wait_status(lambda s: s["frames"]["backlog"] == 0, 30)
             await asyncio.sleep(1.5)
-            code = await daemon.stop(signal.SIGTERM)
+            alive = await asyncio.to_thread(shore.alive, "boat1")
+            control = await asyncio.to_thread(
+                shore.get, "seamap/boat1/control/survey", b'{"action": "stop"}'
+            )
             (survey,) = (state_dir / "surveys").iterdir()
+            await asyncio.to_thread(wait_for_state, survey, "done", 120)
+            await asyncio.sleep(1.0)  # the final tiles' puts
+            late_shore = ZenohObserver(endpoint)
+            await asyncio.to_thread(late_shore.open)
+            late = await asyncio.to_thread(
+                late_shore.get, f"seamap/boat1/survey/{survey.name}/tile/**"
+            )
+            await asyncio.to_thread(late_shore.close)
+            await asyncio.to_thread(shore.close)
+            code = await daemon.stop(signal.SIGTERM)
             return Run(
                 sim, state_dir, survey, code, daemon.log(), daemon.statuses,
                 play.sonar.pings_sent, play.sonar.pings_missed, dict(play.autopilot.sent), config,
+                shore.heard, late, control, alive,
             )  # fmt: skip
 
     return asyncio.run(main())
@@ -80,12 +114,23 @@ def _trajectory(path: Path) -> np.ndarray:
     return np.array([[float(r[k]) for k in ("time", "east", "north", "heading_deg")] for r in rows])
 
 
-def test_daemon_ends_the_survey_cleanly_on_sigterm(run: Run) -> None:
+def wait_for_state(survey: Path, wanted: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if json.loads((survey / "survey.json").read_text())["state"] == wanted:
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"survey not {wanted} after {timeout_s} s")
+
+
+def test_survey_ends_on_a_zenoh_request_and_the_daemon_on_sigterm(run: Run) -> None:
     assert run.exit_code == 0, run.log
     assert "Traceback" not in run.log
+    (reply,) = run.control
+    assert json.loads(reply.payload) == {"ok": True, "survey": run.survey.name}
     state = json.loads((run.survey / "survey.json").read_text())
     assert state["state"] == "done", state
-    assert state["reason"] == "shutdown" and state["segments"] == 1
+    assert state["reason"] == "zenoh" and state["segments"] == 1
     for name in ("mosaic.tif", "mosaic.png", "trajectory.csv", "report.json"):
         assert (run.survey / name).is_file(), name
     assert not (run.survey / "live-tiles").exists()
@@ -169,3 +214,67 @@ def test_live_system_places_frames_as_offline_processing_of_the_simulation(
     p50, p90, top = np.percentile(error, [50, 90, 100])
     print(f"daemon vs offline (m): p50 {p50:.4f} p90 {p90:.4f} max {top:.4f}")
     assert np.median(error) < 0.05, np.percentile(error, [50, 90, 100])
+
+
+def test_pose_and_status_arrive_on_zenoh_as_the_contract_says(run: Run) -> None:
+    poses = [h for h in run.heard if h.key == "seamap/boat1/pose"]
+    statuses = [h for h in run.heard if h.key == "seamap/boat1/status"]
+    assert run.alive  # the liveliness token
+    assert len(poses) > 0 and all(h.encoding == "application/json" for h in poses)
+    for pose in (json.loads(h.payload) for h in poses):
+        assert {"time", "lat", "lon", "east", "north", "heading_deg", "epsg"} <= set(pose)
+        assert 32601 <= pose["epsg"] <= 32760 and 0.0 <= pose["heading_deg"] < 360.0
+    # At least 5 Hz while the boat maps (the sonar pings at 10 Hz).
+    span = poses[-1].at - poses[0].at
+    assert len(poses) / span >= 5.0, (len(poses), span)
+    times = [json.loads(h.payload)["time"] for h in poses]
+    assert times == sorted(times)  # "where the boat is" never goes back
+    assert len(statuses) >= 0.5 * (statuses[-1].at - statuses[0].at)  # about 1 Hz
+    status = json.loads(statuses[len(statuses) // 2].payload)
+    assert {"links", "frames", "lag_s", "disk_free_mb", "survey"} <= set(status)
+    assert status["links"]["sonar"]["up"] and status["links"]["mavlink"]["up"]
+
+
+def test_live_tiles_follow_the_contract_and_versions_grow(run: Run) -> None:
+    tiles = [h for h in run.heard if "/tile/" in h.key]
+    assert tiles
+    versions: dict[str, list[int]] = {}
+    for h in tiles:
+        parts = parse_tile_key(h.key)
+        assert parts is not None and parts.vehicle == "boat1" and parts.survey == run.survey.name
+        assert h.encoding == "image/png" and h.attachment is not None
+        info = TileInfo.from_json(h.attachment)
+        assert info.key() == (parts.col, parts.row)
+        assert info.size_px == 256 and info.res_m == 0.02
+        values = decode_tile(h.payload)
+        assert values.shape == (256, 256) and values.any()
+        versions.setdefault(h.key, []).append(info.version)
+    assert all(v == sorted(set(v)) for v in versions.values())
+    assert any(len(v) > 1 for v in versions.values())  # republished as the map grew
+
+
+def test_a_late_subscriber_gets_every_final_tile_and_they_make_the_result(run: Run) -> None:
+    assert run.late
+    held = {}
+    for h in run.late:
+        assert h.attachment is not None
+        info = TileInfo.from_json(h.attachment)
+        held[info.key()] = (decode_tile(h.payload), info)
+    live_versions: dict[tuple[int, int], int] = {}
+    for h in run.heard:
+        parts = parse_tile_key(h.key)
+        if parts is not None and h.attachment is not None:
+            key = (parts.col, parts.row)
+            version = TileInfo.from_json(h.attachment).version
+            live_versions[key] = max(live_versions.get(key, 0), version)
+    # Final tiles are newer than anything published live.
+    assert all(info.version >= live_versions.get(key, 0) for key, (_, info) in held.items())
+    with rasterio.open(run.survey / "mosaic.tif") as src:
+        mosaic, transform = src.read(1), src.transform
+    tile_m = 0.02 * 256
+    col0, top = round(transform.c / tile_m), round(transform.f / tile_m) - 1
+    rebuilt = np.zeros_like(mosaic)
+    for (col, row), (values, _) in held.items():
+        y, x = (top - row) * 256, (col - col0) * 256
+        rebuilt[y : y + 256, x : x + 256] = values[: mosaic.shape[0] - y, : mosaic.shape[1] - x]
+    np.testing.assert_array_equal(rebuilt, mosaic)

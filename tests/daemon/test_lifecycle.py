@@ -18,7 +18,7 @@ import pytest
 from daemon.survey import SurveyState, write_state
 from drivers.oculus.logfile import OculusLogWriter
 from seamap.config import config_from_dict, dump_config
-from tests.daemon.harness import SEAMAP, DaemonProcess, free_udp_port
+from tests.daemon.harness import SEAMAP, DaemonProcess, free_udp_port, zenoh_table
 from tools.sim import simulate
 
 
@@ -34,6 +34,7 @@ def config_file(tmp_path: Path, **daemon: object) -> Path:
         "daemon": {"state_dir": str(tmp_path / "state"), **daemon},
         "sonar": {"address": "127.0.0.1", "tcp_port": closed_tcp_port()},
         "mavlink": {"url": f"udpin:127.0.0.1:{free_udp_port()}"},
+        "zenoh": zenoh_table(),
     }
     path = tmp_path / "site.toml"
     path.write_text(dump_config(config_from_dict(data)))

@@ -1,0 +1,387 @@
+"""The boat's zenoh side: pose, status and tiles out; tile catch-up and survey control in.
+
+The event loop only hands things over (``pose``, ``status``, ``tile``, ``final_tiles``):
+each goes into a latest-wins slot and wakes the publisher's own thread, which encodes the
+PNGs and puts. Puts use congestion control DROP, so a slow shore loses stale poses
+instead of queueing them, and nothing ever waits on the network.
+
+Queries arrive on zenoh's threads and are handed to the same thread (no work inside a
+zenoh callback): a ``get`` on ``seamap/{vehicle}/survey/{survey}/tile/**`` (or any part of
+it) gets every current tile of the surveys it names, the live survey's from memory and
+finished surveys' from their folders (``tiles/``, written at the survey-end pass). The
+survey control queryable (``seamap/{vehicle}/control/survey``) is answered on the event
+loop, where the daemon lives.
+
+Tile versions are millisecond UNIX times, forced to grow per tile: they keep growing
+across daemon restarts, so a shore that held a tile before a crash takes the new one.
+The session comes and goes (``attach``/``detach``, by the daemon's supervised zenoh task);
+the caches do not, so a shore reconnecting after an outage catches up with a ``get``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rasterio
+import zenoh
+
+from mapping.streaming import PoseUpdate, TileUpdate
+from seamap import zenoh_io
+from seamap.zenoh_io import TileInfo
+
+log = logging.getLogger(__name__)
+
+TILES_DIR = "tiles"
+TILES_INDEX = "index.json"
+
+ControlHandler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+
+
+@dataclass
+class PublisherStats:
+    poses: int = 0
+    statuses: int = 0
+    tiles: int = 0
+    queries: int = 0
+    replies: int = 0
+    put_errors: int = 0
+    session_opens: int = 0
+
+
+@dataclass(frozen=True)
+class _Tile:
+    png: bytes
+    info: TileInfo
+
+
+class ZenohPublisher:
+    """See the module docstring. ``vehicle`` names the keys; ``surveys_dir`` holds the
+    finished surveys' tiles; ``control`` answers survey start/stop requests."""
+
+    def __init__(
+        self,
+        vehicle: str,
+        surveys_dir: Path,
+        loop: asyncio.AbstractEventLoop,
+        control: ControlHandler | None = None,
+    ) -> None:
+        self.vehicle = vehicle
+        self.surveys_dir = surveys_dir
+        self.control = control
+        self.stats = PublisherStats()
+        self._loop = loop
+        self._session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._wake = threading.Condition()
+        self._pose: bytes | None = None
+        self._status: bytes | None = None
+        self._pending_tiles: dict[tuple[str, tuple[int, int]], TileUpdate] = {}
+        self._queries: list[Any] = []
+        self._tiles: dict[str, dict[tuple[int, int], _Tile]] = {}
+        self._lock = threading.Lock()  # guards _tiles
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="zenoh-publisher", daemon=True)
+        self._thread.start()
+
+    # --- session (event loop) --------------------------------------------------------------
+
+    def attach(self, session: zenoh.Session) -> None:
+        """Start publishing on ``session``: liveliness token, queryables."""
+        v = self.vehicle
+        declared = [
+            session.liveliness().declare_token(zenoh_io.alive_key(v)),
+            session.declare_queryable(zenoh_io.tiles_selector(v), self._on_query, complete=True),
+            session.declare_queryable(zenoh_io.control_key(v), self._on_control, complete=True),
+        ]
+        with self._wake:
+            self._session, self._declared = session, declared
+            self.stats.session_opens += 1
+            self._wake.notify()
+
+    def detach(self) -> zenoh.Session | None:
+        """Stop publishing; the session (to be closed by the caller), if any."""
+        with self._wake:
+            session, self._session = self._session, None
+            declared, self._declared = self._declared, []
+        for item in declared:
+            try:
+                item.undeclare()
+            except Exception as exc:  # a session already closed by zenoh
+                log.debug("undeclare failed: %s", exc)
+        return session
+
+    def close(self) -> None:
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+        self._thread.join(timeout=5.0)
+
+    # --- hand-over (event loop) ------------------------------------------------------------
+
+    def pose(self, update: PoseUpdate) -> None:
+        message = {
+            "time": update.time,
+            "lat": update.lat,
+            "lon": update.lon,
+            "east": update.east,
+            "north": update.north,
+            "heading_deg": update.heading_deg,
+            "epsg": update.epsg,
+            "frame": update.frame,
+            "final": update.final,
+        }
+        with self._wake:
+            self._pose = zenoh_io.json_bytes(message)
+            self._wake.notify()
+
+    def status(self, snapshot: dict[str, Any]) -> None:
+        with self._wake:
+            self._status = json.dumps(snapshot, default=str).encode()
+            self._wake.notify()
+
+    def tile(self, survey: str, update: TileUpdate) -> None:
+        with self._wake:
+            self._pending_tiles[(survey, update.key)] = update
+            self._wake.notify()
+
+    def survey_ended(self, survey: str) -> None:
+        """Forget the live tiles of a survey: from now on its tiles come from its folder."""
+        with self._lock:
+            self._tiles.pop(survey, None)
+
+    def final_tiles(self, survey: str, survey_dir: Path) -> int:
+        """Cut the survey's final ``mosaic.tif`` into tiles, keep them in ``tiles/`` for
+        later queries and publish them (newer versions than any live tile). Runs on the
+        caller's thread (the survey-end pass's); returns the number of tiles."""
+        tiles = cut_mosaic(survey_dir / "mosaic.tif")
+        if not tiles:
+            return 0
+        with self._lock:
+            held = dict(self._tiles.get(survey, {}))
+        out: dict[tuple[int, int], _Tile] = {}
+        stamp = _version_now()
+        for key, (values, info) in tiles.items():
+            previous = held.get(key)
+            version = max(stamp, previous.info.version + 1 if previous else 0)
+            info = TileInfo(info.epsg, info.res_m, info.west, info.north, info.size_px, version)
+            out[key] = _Tile(zenoh_io.encode_tile(values), info)
+        write_tiles(survey_dir / TILES_DIR, out)
+        with self._lock:
+            self._tiles[survey] = out
+        with self._wake:
+            session = self._session
+        if session is not None:
+            for key, tile in out.items():
+                self._put_tile(session, survey, key, tile)
+        return len(out)
+
+    # --- zenoh callbacks (zenoh threads): hand over only -----------------------------------
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._wake:
+            self._queries.append(query)
+            self._wake.notify()
+
+    def _on_control(self, query: zenoh.Query) -> None:
+        if self.control is None:
+            query.reply_err(b'{"ok": false, "error": "no survey control"}')
+            return
+        asyncio.run_coroutine_threadsafe(self._answer_control(query), self._loop)
+
+    async def _answer_control(self, query: zenoh.Query) -> None:
+        try:
+            raw = query.payload.to_bytes() if query.payload is not None else b"{}"
+            request = json.loads(raw or b"{}")
+            if not isinstance(request, dict):
+                raise ValueError("not a JSON object")
+        except ValueError as exc:
+            reply: dict[str, Any] = {"ok": False, "error": f"bad request ({exc})"}
+        else:
+            assert self.control is not None
+            reply = await self.control(request)
+        try:
+            query.reply(zenoh_io.control_key(self.vehicle), zenoh_io.json_bytes(reply))
+        finally:
+            query.drop()
+
+    # --- the publisher thread --------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while not (
+                    self._closed
+                    or self._queries
+                    or self._pending_tiles
+                    or (self._session is not None and (self._pose or self._status))
+                ):
+                    self._wake.wait()
+                if self._closed:
+                    return
+                session = self._session
+                pose = status = None
+                if session is not None:  # otherwise they wait (latest wins) for a session
+                    pose, self._pose = self._pose, None
+                    status, self._status = self._status, None
+                pending, self._pending_tiles = self._pending_tiles, {}
+                queries, self._queries = self._queries, []
+            if session is not None:
+                v = self.vehicle
+                if pose is not None and self._put(session, zenoh_io.pose_key(v), pose):
+                    self.stats.poses += 1
+                if status is not None and self._put(session, zenoh_io.status_key(v), status):
+                    self.stats.statuses += 1
+            for (survey, key), update in pending.items():
+                tile = self._store(survey, update)
+                if session is not None:
+                    self._put_tile(session, survey, key, tile)
+            for query in queries:
+                self._answer(query)
+
+    def _store(self, survey: str, update: TileUpdate) -> _Tile:
+        with self._lock:
+            held = self._tiles.setdefault(survey, {})
+            previous = held.get(update.key)
+        version = max(_version_now(), previous.info.version + 1 if previous else 0)
+        info = TileInfo(
+            update.epsg, update.res_m, update.west, update.north, update.size_px, version
+        )
+        tile = _Tile(zenoh_io.encode_tile(update.values), info)
+        with self._lock:
+            self._tiles.setdefault(survey, {})[update.key] = tile
+        return tile
+
+    def _put(self, session: zenoh.Session, key: str, payload: bytes, **kw: Any) -> bool:
+        try:
+            session.put(
+                key,
+                payload,
+                congestion_control=zenoh.CongestionControl.DROP,
+                encoding=kw.pop("encoding", zenoh.Encoding.APPLICATION_JSON),
+                **kw,
+            )
+            return True
+        except Exception as exc:
+            self.stats.put_errors += 1
+            log.debug("zenoh put %s failed: %s", key, exc)
+            return False
+
+    def _put_tile(
+        self, session: zenoh.Session, survey: str, key: tuple[int, int], tile: _Tile
+    ) -> None:
+        if self._put(
+            session,
+            zenoh_io.tile_key(self.vehicle, survey, *key),
+            tile.png,
+            encoding=zenoh.Encoding.IMAGE_PNG,
+            attachment=tile.info.to_json(),
+        ):
+            self.stats.tiles += 1
+
+    def _answer(self, query: zenoh.Query) -> None:
+        """Reply with every held tile whose key the query's key expression intersects."""
+        self.stats.queries += 1
+        try:
+            wanted = query.key_expr
+            for survey in self._surveys():
+                if not wanted.intersects(
+                    zenoh.KeyExpr(zenoh_io.tiles_selector(self.vehicle, survey))
+                ):
+                    continue
+                for key, tile in self._tiles_of(survey).items():
+                    name = zenoh_io.tile_key(self.vehicle, survey, *key)
+                    if wanted.intersects(zenoh.KeyExpr(name)):
+                        query.reply(
+                            name,
+                            tile.png,
+                            encoding=zenoh.Encoding.IMAGE_PNG,
+                            attachment=tile.info.to_json(),
+                        )
+                        self.stats.replies += 1
+        except Exception as exc:
+            log.warning("tile query failed", extra={"fields": {"reason": str(exc)}})
+        finally:
+            query.drop()
+
+    def _surveys(self) -> list[str]:
+        with self._lock:
+            live = set(self._tiles)
+        on_disk = {
+            p.parent.parent.name for p in self.surveys_dir.glob(f"*/{TILES_DIR}/{TILES_INDEX}")
+        }
+        return sorted(live | on_disk)
+
+    def _tiles_of(self, survey: str) -> dict[tuple[int, int], _Tile]:
+        with self._lock:
+            held = self._tiles.get(survey)
+            if held is not None:
+                return dict(held)
+        return read_tiles(self.surveys_dir / survey / TILES_DIR)
+
+
+def _version_now() -> int:
+    return int(time.time() * 1000)
+
+
+def cut_mosaic(path: Path) -> dict[tuple[int, int], tuple[npt.NDArray[np.uint8], TileInfo]]:
+    """The contract's tiles of a result folder's mosaic.tif (north-up, tile-aligned: the
+    mosaic is assembled from the same grid); tiles without data are left out."""
+    with rasterio.open(path) as src:
+        image = src.read(1)
+        transform, epsg = src.transform, src.crs.to_epsg()
+    res = float(transform.a)
+    size = 256
+    tile_m = res * size
+    col0 = round(transform.c / tile_m)
+    row_top = round(transform.f / tile_m) - 1
+    tiles: dict[tuple[int, int], tuple[npt.NDArray[np.uint8], TileInfo]] = {}
+    for y in range(0, image.shape[0], size):
+        for x in range(0, image.shape[1], size):
+            block = image[y : y + size, x : x + size]
+            if not block.any():
+                continue
+            values = np.zeros((size, size), np.uint8)
+            values[: block.shape[0], : block.shape[1]] = block
+            col, row = col0 + x // size, row_top - y // size
+            info = TileInfo(int(epsg), res, col * tile_m, (row + 1) * tile_m, size, 0)
+            tiles[(col, row)] = (values, info)
+    return tiles
+
+
+def write_tiles(folder: Path, tiles: dict[tuple[int, int], _Tile]) -> None:
+    """Tiles as ``{col}_{row}.png`` plus ``index.json`` (their attachments), index last."""
+    folder.mkdir(exist_ok=True)
+    index = {}
+    for (col, row), tile in tiles.items():
+        (folder / f"{col}_{row}.png").write_bytes(tile.png)
+        index[f"{col}_{row}"] = json.loads(tile.info.to_json())
+    tmp = folder / f".{TILES_INDEX}.tmp"
+    tmp.write_text(json.dumps(index))
+    tmp.replace(folder / TILES_INDEX)
+
+
+def read_tiles(folder: Path) -> dict[tuple[int, int], _Tile]:
+    """What ``write_tiles`` wrote; an unreadable folder or tile is skipped (logged)."""
+    try:
+        index = json.loads((folder / TILES_INDEX).read_text())
+    except (OSError, ValueError):
+        return {}
+    tiles = {}
+    for name, raw in index.items():
+        try:
+            col, row = (int(part) for part in name.split("_"))
+            info = TileInfo.from_json(json.dumps(raw).encode())
+            tiles[(col, row)] = _Tile((folder / f"{name}.png").read_bytes(), info)
+        except (OSError, ValueError) as exc:
+            log.warning("stored tile unreadable", extra={"fields": {"tile": name, "why": exc}})
+    return tiles

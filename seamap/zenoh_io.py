@@ -1,0 +1,202 @@
+"""The zenoh edge of the contract (CONTRACT.md "Zenoh"): key expressions, payloads, sessions.
+
+Keys, ``{vehicle}`` and ``{survey}`` being ids without ``/``:
+
+- ``seamap/{vehicle}/pose``: JSON ``{"time", "lat", "lon", "east", "north", "heading_deg",
+  "epsg", ...}``;
+- ``seamap/{vehicle}/status``: JSON health;
+- ``seamap/{vehicle}/survey/{survey}/tile/{col}/{row}``: a mosaic tile as PNG (8-bit grey +
+  alpha, alpha 0 = no data), encoding ``image/png``, attachment JSON ``{"epsg", "res_m",
+  "west", "north", "size_px", "version"}``; tile (col, row) covers easting
+  [col*T, (col+1)*T) and northing [row*T, (row+1)*T), T = size_px * res_m;
+- ``seamap/{vehicle}/alive``: the vehicle's liveliness token;
+- ``seamap/{vehicle}/control/survey``: a queryable; a ``get`` with payload
+  ``{"action": "start"|"stop"|"status"}`` opens or ends a survey and replies JSON
+  ``{"ok", "survey", ...}``.
+
+Both the boat (``daemon.publisher``) and the shore (``seamap.shore``) speak through here.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+from PIL import Image
+
+from seamap.config import ZenohConfig
+from seamap.errors import SeamapError
+
+ROOT = "seamap"
+
+
+def pose_key(vehicle: str) -> str:
+    return f"{ROOT}/{vehicle}/pose"
+
+
+def status_key(vehicle: str) -> str:
+    return f"{ROOT}/{vehicle}/status"
+
+
+def alive_key(vehicle: str) -> str:
+    return f"{ROOT}/{vehicle}/alive"
+
+
+def control_key(vehicle: str) -> str:
+    return f"{ROOT}/{vehicle}/control/survey"
+
+
+def tile_key(vehicle: str, survey: str, col: int, row: int) -> str:
+    return f"{ROOT}/{vehicle}/survey/{survey}/tile/{col}/{row}"
+
+
+def tiles_selector(vehicle: str, survey: str = "*") -> str:
+    """Every tile of one survey (or of every survey, ``*``) of a vehicle."""
+    return f"{ROOT}/{vehicle}/survey/{survey}/tile/**"
+
+
+@dataclass(frozen=True)
+class TileKeyParts:
+    vehicle: str
+    survey: str
+    col: int
+    row: int
+
+
+def parse_tile_key(key: str) -> TileKeyParts | None:
+    """The parts of a tile key, or None when ``key`` is not one."""
+    parts = key.split("/")
+    if len(parts) != 7 or parts[0] != ROOT or parts[2] != "survey" or parts[4] != "tile":
+        return None
+    try:
+        return TileKeyParts(parts[1], parts[3], int(parts[5]), int(parts[6]))
+    except ValueError:
+        return None
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    """A tile's attachment: where it lies (UTM metres) and its version."""
+
+    epsg: int
+    res_m: float
+    west: float
+    north: float
+    size_px: int
+    version: int
+
+    def to_json(self) -> bytes:
+        return json.dumps(
+            {
+                "epsg": self.epsg,
+                "res_m": self.res_m,
+                "west": self.west,
+                "north": self.north,
+                "size_px": self.size_px,
+                "version": self.version,
+            }
+        ).encode()
+
+    @classmethod
+    def from_json(cls, data: bytes) -> TileInfo:
+        """Parse an attachment; ValueError naming what is wrong."""
+        try:
+            raw = json.loads(data)
+            info = cls(
+                int(raw["epsg"]), float(raw["res_m"]), float(raw["west"]),
+                float(raw["north"]), int(raw["size_px"]), int(raw["version"]),
+            )  # fmt: skip
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"bad tile attachment ({exc})") from None
+        if not (info.res_m > 0 and info.size_px > 0 and math.isfinite(info.west + info.north)):
+            raise ValueError("bad tile attachment (size or position)")
+        return info
+
+    def key(self) -> tuple[int, int]:
+        """The tile's (col, row) from its position."""
+        t = self.res_m * self.size_px
+        return round(self.west / t), round(self.north / t) - 1
+
+
+def encode_tile(values: npt.NDArray[np.uint8]) -> bytes:
+    """A tile's values (1..255, 0 = no data) as PNG, 8-bit grey + alpha."""
+    alpha = np.where(values > 0, np.uint8(255), np.uint8(0))
+    image = Image.fromarray(np.dstack([values, alpha]), mode="LA")
+    out = io.BytesIO()
+    image.save(out, format="PNG", compress_level=6)
+    return out.getvalue()
+
+
+def decode_tile(png: bytes) -> npt.NDArray[np.uint8]:
+    """The values of a tile PNG (grey where alpha > 0, else 0); ValueError if not one."""
+    try:
+        image = Image.open(io.BytesIO(png))
+        image.load()
+    except Exception as exc:
+        raise ValueError(f"not a PNG tile ({exc})") from None
+    if image.mode != "LA":
+        raise ValueError(f"not a grey + alpha PNG tile (mode {image.mode})")
+    data = np.asarray(image)
+    return np.where(data[:, :, 1] > 0, data[:, :, 0], 0).astype(np.uint8)
+
+
+_HOST_PORT_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """None when ``endpoint`` has the form of a zenoh endpoint (``tcp/HOST:PORT``,
+    ``udp/...``, ``unixsock-stream/PATH``, with optional ``?metadata`` and ``#config``),
+    else what is wrong in a few words. zenoh itself accepts some malformed ones in peer
+    mode (``tcp/HOST`` without a port, port 70000) and then retries them for ever."""
+    if not endpoint or any(c.isspace() for c in endpoint):
+        return "empty or contains spaces"
+    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+    protocol, slash, address = locator.partition("/")
+    if not slash or not protocol or not address:
+        return "not PROTOCOL/ADDRESS, e.g. tcp/192.168.1.10:7447"
+    if protocol in _HOST_PORT_PROTOCOLS:
+        host, colon, port = address.rpartition(":")
+        if not colon or not host:
+            return f"no HOST:PORT after {protocol}/"
+        if not port.isdigit() or int(port) > 65535:
+            return f"port {port!r} is not 0..65535"
+    return None
+
+
+def session_config(cfg: ZenohConfig) -> zenoh.Config:
+    """A zenoh configuration from the site config's [zenoh] table (its ``config_file`` first)."""
+    if cfg.config_file:
+        try:
+            config = zenoh.Config.from_file(cfg.config_file)
+        except Exception as exc:
+            raise SeamapError(f"{cfg.config_file}: not a usable zenoh config ({exc})") from None
+    else:
+        config = zenoh.Config()
+    try:
+        config.insert_json5("mode", json.dumps(cfg.mode))
+        config.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+        config.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    except Exception as exc:
+        raise SeamapError(f"config: [zenoh] is not valid for zenoh ({exc})") from None
+    return config
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """Open a session (blocks ~0.5 s: call it from a thread); SeamapError in one line."""
+    config = session_config(cfg)
+    try:
+        return zenoh.open(config)
+    except Exception as exc:
+        where = ", ".join([*cfg.listen, *cfg.connect]) or "no endpoint"
+        raise SeamapError(f"zenoh: cannot open a {cfg.mode} session on {where} ({exc})") from None
+
+
+def json_bytes(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
