@@ -81,6 +81,9 @@ class HealthMonitor:
             "tasks": {"restarts": dict(parts.task_restarts)},
             "final_passes": dict(parts.final_passes),
         }
+        mission = snapshot["links"]["mavlink"].get("mission")  # type: ignore[index]
+        if mission is not None:
+            snapshot["mission"] = mission
         self._events(snapshot, parts)
         self.latest = snapshot
         return snapshot
@@ -126,6 +129,7 @@ class HealthMonitor:
             "reconnects": s.reconnects,
             "reopens": s.reopens,
             "gnss_fix_age_s": None if parts.last_fix is None else round(now - parts.last_fix, 2),
+            "mission": s.mission.to_dict() if s.mission is not None else None,
         }
 
     @staticmethod

@@ -86,6 +86,24 @@ class StreamRequest:
     fallback: bool = False
 
 
+@dataclass(frozen=True)
+class MissionProgress:
+    """MISSION_CURRENT: the item being flown, of ``total`` (MAVLink 2 extension, 0 when the
+    autopilot does not send it); ``state`` is MISSION_STATE (0 unknown, 1 no mission,
+    2 not started, 3 active, 4 paused, 5 complete); ``time`` the receive stamp (UNIX s)."""
+
+    current: int
+    total: int
+    state: int
+    time: float
+
+    STATES = ("unknown", "no mission", "not started", "active", "paused", "complete")
+
+    def to_dict(self) -> dict[str, object]:
+        state = self.STATES[self.state] if 0 <= self.state < len(self.STATES) else "unknown"
+        return {"current": self.current, "total": self.total, "state": state}
+
+
 @dataclass
 class LinkStats:
     """What the link met. Rates are messages per second over the last ~1 s window."""
@@ -112,6 +130,8 @@ class LinkStats:
     autopilot: str = "unknown"
     requests: dict[str, StreamRequest] = field(default_factory=dict)
     last_heartbeat: float | None = None
+    mission: MissionProgress | None = None
+    """The autopilot's mission progress, from its latest MISSION_CURRENT."""
 
 
 class _Chooser:
@@ -346,6 +366,11 @@ class MavlinkLink:
             ack = self._ack
             if msg.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL and ack and not ack.done():
                 ack.set_result(int(msg.result))
+        elif kind == "MISSION_CURRENT":
+            self.stats.mission = MissionProgress(
+                int(msg.seq), int(getattr(msg, "total", 0) or 0),
+                int(getattr(msg, "mission_state", 0) or 0), now,
+            )  # fmt: skip
         elif self.stats.link_up:
             self._convert(msg, kind, now)
 

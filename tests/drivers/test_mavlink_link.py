@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from drivers.mavlink.link import MavlinkLink
 from drivers.mavlink.navlog import NavLog, read_nav_log
@@ -188,5 +189,19 @@ def test_gps_pause_stops_gnss_but_not_imu(survey):
         assert not [t for t in gnss if start + 0.05 < t < end]
         assert any(t >= end for t in gnss)
         assert len(imu_in_pause) >= 50  # 55 Hz log time, replayed 2x faster, for 1 s
+
+    run_udp(tlog, body, time_scale=2.0)
+
+
+def test_mission_progress_is_kept_from_mission_current(survey):
+    tlog, _ = survey
+
+    async def body(link: MavlinkLink, emu: AutopilotEmulator, got: list[Any]) -> None:
+        await until(lambda: link.stats.link_up)
+        assert link.stats.mission is None
+        emu._send(mavlink2.MAVLink_mission_current_message(3, 12, 3, 0))  # item 3 of 12, active
+        await until(lambda: link.stats.mission is not None)
+        assert link.stats.mission is not None
+        assert link.stats.mission.to_dict() == {"current": 3, "total": 12, "state": "active"}
 
     run_udp(tlog, body, time_scale=2.0)
