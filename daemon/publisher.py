@@ -96,12 +96,13 @@ class ZenohPublisher:
     # --- session (event loop) --------------------------------------------------------------
 
     def attach(self, session: zenoh.Session) -> None:
-        """Start publishing on ``session``: liveliness token, queryables."""
+        """Start publishing on ``session``: queryables, then the liveliness token (a shore
+        catches up with a ``get`` when the token appears, so the tiles must answer first)."""
         v = self.vehicle
         declared = [
-            session.liveliness().declare_token(zenoh_io.alive_key(v)),
             session.declare_queryable(zenoh_io.tiles_selector(v), self._on_query, complete=True),
             session.declare_queryable(zenoh_io.control_key(v), self._on_control, complete=True),
+            session.liveliness().declare_token(zenoh_io.alive_key(v)),
         ]
         with self._wake:
             self._session, self._declared = session, declared

@@ -1,0 +1,79 @@
+"""``seamap shore``: the shore station, following a boat's live map over zenoh (see
+``seamap.shore``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from seamap.errors import SeamapError
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "shore",
+        help="the shore station: follow a boat's live map over zenoh and keep it on disk",
+        description=(
+            "Follow a boat's live mosaic, pose and status over zenoh and keep them under "
+            "DIR: {vehicle}/{survey}/mosaic.tif and mosaic.png, {vehicle}/track.csv and "
+            "track.geojson, {vehicle}/status.json, rewritten every 5 s. Catches up with every "
+            "current tile at start and whenever the boat comes back. Runs until Ctrl-C or "
+            "SIGTERM (or --duration), then writes its files one last time."
+        ),
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        metavar="SITE.toml",
+        help="a site TOML file: its [zenoh] session and [daemon] vehicle",
+    )
+    parser.add_argument(
+        "--connect",
+        nargs="+",
+        action="extend",
+        metavar="ENDPOINT",
+        help="zenoh endpoints to connect to (default without --config: tcp/127.0.0.1:7447)",
+    )
+    parser.add_argument(
+        "--listen",
+        nargs="+",
+        action="extend",
+        metavar="ENDPOINT",
+        help="zenoh endpoints to listen on (default without --config: none)",
+    )
+    parser.add_argument(
+        "--mode", choices=("peer", "client"), help="zenoh session mode (default: peer)"
+    )
+    parser.add_argument(
+        "--vehicle",
+        metavar="ID",
+        help="the vehicle id to follow (default: the config's [daemon] vehicle, else every one)",
+    )
+    parser.add_argument(
+        "--survey", metavar="ID", help="the survey id to follow (default: every survey)"
+    )
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (scripts, tests)"
+    )
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from seamap.config import load_config
+    from seamap.shore import serve, shore_settings
+
+    if args.duration is not None and not args.duration > 0:
+        raise SeamapError(f"--duration {args.duration:g}: must be more than 0 seconds")
+    config = load_config(args.config) if args.config is not None else None
+    settings = shore_settings(
+        args.out,
+        config,
+        mode=args.mode,
+        listen=args.listen,
+        connect=args.connect,
+        vehicle=args.vehicle,
+        survey=args.survey,
+    )
+    return serve(settings, args.duration)

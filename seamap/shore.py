@@ -1,0 +1,805 @@
+"""The shore station: follow boats' live maps over zenoh and keep them on disk.
+
+``ShoreStation`` subscribes to a vehicle's pose, status and tiles (CONTRACT.md "Zenoh")
+and to its liveliness token, and catches up with a ``get`` of every current tile at start
+and each time the boat's token (re)appears. zenoh callbacks only turn what arrives into
+``_Received`` items on one queue (``_hand_over``, the single bridge from zenoh's threads);
+``run`` takes them off on the caller's thread, applies them and, at a steady cadence,
+rewrites (atomically, only what changed):
+
+- ``DIR/{vehicle}/{survey}/mosaic.tif`` and ``mosaic.png``: the tiles held, assembled
+  north-up on the survey's UTM grid, 0 = no data (the result folder's format);
+- ``DIR/{vehicle}/track.csv`` and ``track.geojson``: every pose received (poses carry no
+  survey id, so the track is the vehicle's);
+- ``DIR/{vehicle}/status.json``: the latest status, as received.
+
+A tile replaces the one held only if its attachment's version is higher, so a late
+``get`` reply never undoes a newer live tile. Bad payloads are counted and told in one
+line; they never stop the station.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import queue
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from functools import partial
+from pathlib import Path
+from types import FrameType
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+
+from mapping.mosaic import TileGrid, assemble
+from seamap.config import SiteConfig, ZenohConfig
+from seamap.errors import SeamapError
+from seamap.results import write_geotiff, write_png
+from seamap.zenoh_io import (
+    ROOT,
+    TileInfo,
+    alive_key,
+    decode_tile,
+    endpoint_problem,
+    open_session,
+    parse_tile_key,
+    pose_key,
+    status_key,
+    tiles_selector,
+)
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+WRITE_INTERVAL_S = 5.0
+TTY_STATUS_INTERVAL_S = 1.0
+LOG_STATUS_INTERVAL_S = 10.0
+CATCHUP_TIMEOUT_S = 300.0
+"""A catch-up over a slow radio link can take minutes; live tiles keep coming meanwhile."""
+MAX_MOSAIC_PX = 500_000_000
+"""Mosaics larger than this (tiles far apart, e.g. a long diagonal transit) are not
+assembled: the shore says so once instead of exhausting its memory."""
+BAD_LINE_INTERVAL_S = 1.0
+TRACK_HEADER = ("time", "lat", "lon", "east", "north", "heading_deg")
+
+
+def _default_session() -> ZenohConfig:
+    """Without a config: a peer that connects to DEFAULT_CONNECT, listens nowhere, and does
+    no multicast scouting."""
+    return ZenohConfig(mode="peer", listen=[], connect=[DEFAULT_CONNECT], multicast_scouting=False)
+
+
+@dataclass(frozen=True)
+class ShoreSettings:
+    out_dir: Path
+    zenoh: ZenohConfig = field(default_factory=_default_session)
+    vehicle: str = "*"
+    """The vehicle id followed, or ``*`` for every vehicle."""
+    survey: str = "*"
+    """The survey id followed, or ``*`` for every survey."""
+    write_interval_s: float = WRITE_INTERVAL_S
+    status_interval_s: float | None = None
+    """How often the status line is shown; None: every second on a terminal, else every 10 s."""
+    catchup_timeout_s: float = CATCHUP_TIMEOUT_S
+
+
+def shore_settings(
+    out_dir: Path,
+    config: SiteConfig | None = None,
+    *,
+    mode: str | None = None,
+    listen: Sequence[str] | None = None,
+    connect: Sequence[str] | None = None,
+    vehicle: str | None = None,
+    survey: str | None = None,
+) -> ShoreSettings:
+    """The shore's settings: the zenoh session from ``config``'s ``[zenoh]`` (or, without a
+    config, a peer connecting to ``DEFAULT_CONNECT``, not listening, no multicast
+    scouting), each given option replacing the config's value; the vehicle from
+    ``vehicle``, else the config's ``[daemon] vehicle``, else every vehicle.
+    SeamapError naming a malformed endpoint or id."""
+    base = config.zenoh if config is not None else _default_session()
+    session = replace(
+        base,
+        mode=mode if mode is not None else base.mode,
+        listen=list(listen) if listen is not None else list(base.listen),
+        connect=list(connect) if connect is not None else list(base.connect),
+    )
+    for name, given, endpoints in (
+        ("listen", listen is not None, session.listen),
+        ("connect", connect is not None, session.connect),
+    ):
+        where = f"--{name}" if given else f"[zenoh] {name}"
+        for endpoint in endpoints:
+            problem = endpoint_problem(endpoint)
+            if problem is not None:
+                raise SeamapError(f"{where} {endpoint!r}: not a zenoh endpoint ({problem})")
+    if vehicle is None:
+        vehicle = config.daemon.vehicle if config is not None else "*"
+    survey = "*" if survey is None else survey
+    for name, value in (("--vehicle", vehicle), ("--survey", survey)):
+        if value != "*" and _id_problem(value):
+            raise SeamapError(f"{name} {value!r}: {_id_problem(value)}")
+    return ShoreSettings(out_dir=out_dir, zenoh=session, vehicle=vehicle, survey=survey)
+
+
+def _id_problem(value: str) -> str | None:
+    """Why ``value`` cannot be a vehicle or survey id (a key chunk and a folder name)."""
+    if not value or value in (".", ".."):
+        return "not an id"
+    if any(c in value for c in "/*?#$") or any(c.isspace() for c in value):
+        return "an id holds no '/', '*', '?', '#', '$' or spaces"
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class TrackPoint:
+    """One pose as received: UNIX s, WGS84 degrees, UTM metres, degrees from true north."""
+
+    time: float
+    lat: float
+    lon: float
+    east: float
+    north: float
+    heading_deg: float
+
+
+@dataclass(frozen=True, slots=True)
+class HeldTile:
+    info: TileInfo
+    values: npt.NDArray[np.uint8]
+    """size_px x size_px, north-up, 0 = no data."""
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """A survey's tiles as one north-up image; (west, north) is its top-left corner (UTM m)."""
+
+    image: npt.NDArray[np.uint8]
+    west: float
+    north: float
+    res_m: float
+    epsg: int
+
+
+@dataclass
+class ShoreStats:
+    tiles_taken: int = 0
+    """Tiles stored, new or replacing an older version."""
+    tiles_stale: int = 0
+    """Tiles not newer than the one held (late catch-up replies, repeats): dropped."""
+    poses: int = 0
+    statuses: int = 0
+    bad: int = 0
+    """Payloads that could not be used (bad PNG, attachment, JSON, size, key)."""
+    arrivals: int = 0
+    """Times a boat's liveliness token appeared (a boat already up counts once at start)."""
+    departures: int = 0
+    catchups_started: int = 0
+    catchups_done: int = 0
+    writes: int = 0
+    """Files written."""
+
+
+class _Via(Enum):
+    SUBSCRIPTION = "subscription"
+    CATCHUP = "catch-up reply"
+    LIVELINESS = "liveliness"
+    CATCHUP_DONE = "catch-up done"
+    WAKE = "wake"
+
+
+@dataclass(frozen=True, slots=True)
+class _Received:
+    via: _Via
+    key: str = ""
+    payload: bytes = b""
+    attachment: bytes | None = None
+    put: bool = True
+
+
+def _received(via: _Via, sample: zenoh.Sample) -> _Received:
+    attachment = sample.attachment
+    return _Received(
+        via,
+        str(sample.key_expr),
+        sample.payload.to_bytes(),
+        None if attachment is None else attachment.to_bytes(),
+        sample.kind == zenoh.SampleKind.PUT,
+    )
+
+
+@dataclass
+class _Survey:
+    tiles: dict[tuple[int, int], HeldTile] = field(default_factory=dict)
+    changed: bool = False
+    too_big_told: bool = False
+
+
+@dataclass
+class _Vehicle:
+    alive: bool | None = None
+    track: list[TrackPoint] = field(default_factory=list)
+    track_changed: bool = False
+    status: dict[str, Any] | None = None
+    status_raw: bytes = b""
+    status_changed: bool = False
+    surveys: dict[str, _Survey] = field(default_factory=dict)
+    latest_survey: str | None = None
+
+
+class _Console:
+    """Event lines and the status line on one stream. On a terminal the status line is
+    rewritten in place and events print above it; elsewhere both are plain lines."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+        try:
+            self.tty = stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self._drawn = False
+
+    def event(self, text: str) -> None:
+        self._write(("\r\x1b[K" if self._drawn else "") + f"shore: {text}\n")
+        self._drawn = False
+
+    def status(self, text: str, final: bool = False) -> None:
+        if self.tty:
+            width = max(20, shutil.get_terminal_size().columns - 1)
+            self._write("\r" + text[:width] + "\x1b[K" + ("\n" if final else ""))
+            self._drawn = not final
+        else:
+            self._write(f"shore: {text}\n")
+
+    def _write(self, text: str) -> None:
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except (OSError, ValueError):
+            pass  # a closed terminal must not stop the station
+
+
+class ShoreStation:
+    """Follow ``settings.vehicle`` over zenoh and keep its map, track and status on disk.
+
+    ``open`` (or ``with``) opens the session (blocking ~0.5 s), subscribes and catches up;
+    ``run`` applies what arrives and writes the files until stopped; ``close`` ends the
+    session. The readers (``tiles``, ``mosaic``, ``track``, ``status``, ``alive``,
+    ``status_line``, ``stats``) belong to the thread that calls ``run``: use them between
+    runs or from its ``until`` predicate. Only ``stop`` may be called from elsewhere.
+    """
+
+    def __init__(
+        self,
+        settings: ShoreSettings,
+        *,
+        console: TextIO | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self.stats = ShoreStats()
+        self._console = _Console(console if console is not None else sys.stderr)
+        self._clock = clock
+        self._inbox: queue.SimpleQueue[_Received] = queue.SimpleQueue()
+        self._session: zenoh.Session | None = None
+        self._vehicles: dict[str, _Vehicle] = {}
+        self._stop_requested = False
+        self._status_interval = settings.status_interval_s or (
+            TTY_STATUS_INTERVAL_S if self._console.tty else LOG_STATUS_INTERVAL_S
+        )
+        self._next_write = math.inf
+        self._next_status = math.inf
+        self._bad_told: dict[str, tuple[float, int]] = {}
+        """Per kind of payload: when its last bad-payload line was told, how many since."""
+        self._write_failing: set[Path] = set()
+
+    # --- life cycle -------------------------------------------------------------------------
+
+    def __enter__(self) -> ShoreStation:
+        self.open()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        """Open the session, subscribe and start the first catch-up; SeamapError in one line."""
+        if self._session is not None:
+            return
+        out_dir = self.settings.out_dir
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SeamapError(f"{out_dir}: cannot create the output folder ({exc})") from None
+        cfg = self.settings.zenoh
+        try:
+            session = open_session(cfg)
+        except SeamapError as exc:
+            if cfg.mode == "client":
+                raise SeamapError(
+                    f"{exc}; client mode needs a reachable zenoh router "
+                    "(--mode peer waits for the boat instead)"
+                ) from None
+            raise
+        vehicle, survey = self.settings.vehicle, self.settings.survey
+        try:
+            session.declare_subscriber(pose_key(vehicle), self._on_sample)
+            session.declare_subscriber(status_key(vehicle), self._on_sample)
+            session.declare_subscriber(tiles_selector(vehicle, survey), self._on_sample)
+            session.liveliness().declare_subscriber(
+                alive_key(vehicle), self._on_liveliness, history=True
+            )
+        except zenoh.ZError as exc:
+            session.close()
+            raise SeamapError(f"zenoh: cannot subscribe to {ROOT}/{vehicle} ({exc})") from None
+        self._session = session
+        now = self._clock()
+        self._next_write = now + self.settings.write_interval_s
+        self._next_status = now + self._status_interval
+        links = [f"connecting to {', '.join(cfg.connect)}"] if cfg.connect else []
+        links += [f"listening on {', '.join(cfg.listen)}"] if cfg.listen else []
+        self._console.event(
+            f"following {ROOT}/{vehicle} (survey {survey}) as a zenoh {cfg.mode} "
+            f"{' and '.join(links) or 'without endpoints'}; writing to {out_dir}"
+        )
+        self.catch_up()
+
+    def close(self) -> None:
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()
+
+    def stop(self) -> None:
+        """Make ``run`` return (now, or at once when next called). Safe from any thread and
+        from a signal handler."""
+        self._stop_requested = True
+        self._hand_over(_Received(_Via.WAKE))
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop_requested
+
+    def run(
+        self,
+        duration_s: float | None = None,
+        until: Callable[[ShoreStation], bool] | None = None,
+    ) -> bool:
+        """Apply what arrives, show the status line and write the files at their cadence,
+        until ``stop``, ``duration_s`` seconds, or ``until(self)`` holds; then write what
+        changed one last time. True when ``until`` was met."""
+        self.open()
+        end = math.inf if duration_s is None else self._clock() + duration_s
+        met = False
+        while not self._stop_requested:
+            if until is not None and until(self):
+                met = True
+                break
+            now = self._clock()
+            if now >= end:
+                break
+            self._on_time(now)
+            wait = min(end, self._next_write, self._next_status) - now
+            try:
+                item = self._inbox.get(timeout=max(wait, 0.0))
+            except queue.Empty:
+                continue
+            self._apply(item)
+        self.write_files()
+        self._console.status(self.status_line(), final=True)
+        return met
+
+    def catch_up(self, vehicle: str | None = None) -> None:
+        """Ask for every current tile of ``vehicle`` (default: the vehicles followed) of
+        the survey(s) followed; the replies arrive like live tiles."""
+        if self._session is None:
+            raise RuntimeError("catch_up before open")
+        selector = tiles_selector(vehicle or self.settings.vehicle, self.settings.survey)
+        try:
+            self._session.get(
+                selector,
+                zenoh.handlers.Callback(self._on_reply, self._on_catchup_done),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=self.settings.catchup_timeout_s,
+            )
+        except zenoh.ZError as exc:
+            self._console.event(f"cannot catch up with {selector} ({exc})")
+            return
+        self.stats.catchups_started += 1
+
+    # --- the one bridge from zenoh's threads --------------------------------------------------
+
+    def _hand_over(self, item: _Received) -> None:
+        """Runs on zenoh's threads (and in signal handlers): hands over, never blocks."""
+        self._inbox.put(item)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._hand_over(_received(_Via.SUBSCRIPTION, sample))
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        self._hand_over(_received(_Via.LIVELINESS, sample))
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        sample = reply.ok
+        if sample is not None:  # an error reply carries no tile
+            self._hand_over(_received(_Via.CATCHUP, sample))
+
+    def _on_catchup_done(self) -> None:
+        self._hand_over(_Received(_Via.CATCHUP_DONE))
+
+    # --- applying what arrived (the run thread) -----------------------------------------------
+
+    def _apply(self, item: _Received) -> None:
+        if item.via is _Via.WAKE:
+            return
+        if item.via is _Via.CATCHUP_DONE:
+            self.stats.catchups_done += 1
+            return
+        parts = item.key.split("/")
+        if item.via is _Via.LIVELINESS:
+            if len(parts) == 3 and parts[2] == "alive" and not _id_problem(parts[1]):
+                self._take_liveliness(parts[1], item.put)
+            return
+        if len(parts) == 3 and parts[0] == ROOT and parts[2] in ("pose", "status"):
+            if _id_problem(parts[1]):
+                self._bad(item.key, "vehicle id unusable as a folder name")
+            elif not item.put:
+                pass  # a delete of the pose or status means nothing here
+            elif parts[2] == "pose":
+                self._take_pose(parts[1], item)
+            else:
+                self._take_status(parts[1], item)
+            return
+        self._take_tile(item)
+
+    def _vehicle(self, vehicle: str) -> _Vehicle:
+        return self._vehicles.setdefault(vehicle, _Vehicle())
+
+    def _take_liveliness(self, vehicle: str, alive: bool) -> None:
+        held = self._vehicle(vehicle)
+        if alive:
+            self.stats.arrivals += 1
+            held.alive = True
+            self._console.event(f"{vehicle}: boat up, catching up")
+            self.catch_up(vehicle)
+        else:
+            self.stats.departures += 1
+            held.alive = False
+            self._console.event(f"{vehicle}: boat away (its map is kept; waiting for it)")
+
+    def _take_pose(self, vehicle: str, item: _Received) -> None:
+        try:
+            raw = json.loads(item.payload)
+            point = TrackPoint(*(float(raw[name]) for name in TRACK_HEADER))
+        except (ValueError, KeyError, TypeError) as exc:
+            self._bad(item.key, f"not a pose ({type(exc).__name__}: {exc})")
+            return
+        values = (point.time, point.lat, point.lon, point.east, point.north, point.heading_deg)
+        if not all(math.isfinite(v) for v in values) or abs(point.lat) > 90 or abs(point.lon) > 180:
+            self._bad(item.key, "pose not finite or out of range")
+            return
+        held = self._vehicle(vehicle)
+        held.track.append(point)
+        held.track_changed = True
+        self.stats.poses += 1
+
+    def _take_status(self, vehicle: str, item: _Received) -> None:
+        try:
+            status = json.loads(item.payload)
+        except ValueError as exc:
+            self._bad(item.key, f"status is not JSON ({exc})")
+            return
+        if not isinstance(status, dict):
+            self._bad(item.key, "status is not a JSON object")
+            return
+        held = self._vehicle(vehicle)
+        held.status, held.status_raw, held.status_changed = status, item.payload, True
+        self.stats.statuses += 1
+
+    def _take_tile(self, item: _Received) -> None:
+        where = parse_tile_key(item.key)
+        if where is None:
+            self._bad(item.key, "not a tile key")
+            return
+        if not item.put:
+            return  # the contract has no tile deletes; keep what we hold
+        if _id_problem(where.vehicle) or _id_problem(where.survey):
+            self._bad(item.key, "vehicle or survey id unusable as a folder name")
+            return
+        if item.attachment is None:
+            self._bad(item.key, "tile without attachment")
+            return
+        try:
+            info = TileInfo.from_json(item.attachment)
+        except ValueError as exc:
+            self._bad(item.key, str(exc))
+            return
+        key = (where.col, where.row)
+        if info.key() != key:
+            self._bad(item.key, f"attachment places the tile at {info.key()}, not {key}")
+            return
+        vehicle = self._vehicles.get(where.vehicle)
+        survey = vehicle.surveys.get(where.survey) if vehicle is not None else None
+        held = survey.tiles.get(key) if survey is not None else None
+        if held is not None and info.version <= held.info.version:
+            self.stats.tiles_stale += 1
+            return
+        if survey is not None and survey.tiles:
+            grid = next(iter(survey.tiles.values())).info
+            if (info.epsg, info.size_px) != (grid.epsg, grid.size_px) or not math.isclose(
+                info.res_m, grid.res_m, rel_tol=1e-9
+            ):
+                self._bad(item.key, "tile grid (epsg, res_m, size_px) differs from the survey's")
+                return
+        try:
+            values = decode_tile(item.payload)
+        except ValueError as exc:
+            self._bad(item.key, str(exc))
+            return
+        if values.shape != (info.size_px, info.size_px):
+            self._bad(item.key, f"tile is {values.shape}, attachment says {info.size_px} px")
+            return
+        vehicle = self._vehicle(where.vehicle)
+        survey = vehicle.surveys.setdefault(where.survey, _Survey())
+        survey.tiles[key] = HeldTile(info, values)
+        survey.changed = True
+        vehicle.latest_survey = where.survey
+        self.stats.tiles_taken += 1
+
+    def _bad(self, key: str, reason: str) -> None:
+        """Count a bad payload; tell it in one line, at most one line a second per kind
+        (pose, status, tile), so a flood of one kind hides neither itself nor the others."""
+        self.stats.bad += 1
+        kind = key.rsplit("/", 1)[-1] if key.endswith(("/pose", "/status")) else "tile"
+        now = self._clock()
+        told_at, untold = self._bad_told.get(kind, (-math.inf, 0))
+        if now - told_at < BAD_LINE_INTERVAL_S:
+            self._bad_told[kind] = (told_at, untold + 1)
+            return
+        more = f" (+{untold} more since the last such line)" if untold else ""
+        self._console.event(f"bad payload on {key}: {reason}{more}")
+        self._bad_told[kind] = (now, 0)
+
+    def _on_time(self, now: float) -> None:
+        if now >= self._next_status:
+            self._console.status(self.status_line())
+            self._next_status = now + self._status_interval
+        if now >= self._next_write:
+            self.write_files()
+            self._next_write = now + self.settings.write_interval_s
+
+    # --- files --------------------------------------------------------------------------------
+
+    def write_files(self) -> None:
+        """Write what changed since the last write; a failed write is told once and retried
+        at the next cadence."""
+        out_dir = self.settings.out_dir
+        for vehicle, held in self._vehicles.items():
+            folder = out_dir / vehicle
+            if held.track_changed:
+                write_track = partial(_write_track, folder, held.track)
+                held.track_changed = not self._attempt(folder / "track.csv", write_track)
+            if held.status_changed:
+                path = folder / "status.json"
+                write_status = partial(_atomic_write, path, held.status_raw)
+                held.status_changed = not self._attempt(path, write_status)
+            for survey_id, survey in held.surveys.items():
+                if survey.changed:
+                    survey.changed = not self._write_mosaic(vehicle, survey_id, survey)
+
+    def _write_mosaic(self, vehicle: str, survey_id: str, survey: _Survey) -> bool:
+        folder = self.settings.out_dir / vehicle / survey_id
+        cols = [key[0] for key in survey.tiles]
+        rows = [key[1] for key in survey.tiles]
+        size = next(iter(survey.tiles.values())).info.size_px
+        pixels = (max(cols) - min(cols) + 1) * (max(rows) - min(rows) + 1) * size * size
+        if pixels > MAX_MOSAIC_PX:
+            if not survey.too_big_told:
+                self._console.event(
+                    f"{vehicle}/{survey_id}: the mosaic would be {pixels / 1e6:.0f} Mpx "
+                    f"(tiles far apart); not written (limit {MAX_MOSAIC_PX / 1e6:.0f} Mpx)"
+                )
+                survey.too_big_told = True
+            return True
+        mosaic = self.mosaic(vehicle, survey_id)
+        if mosaic is None:
+            return True
+
+        def write() -> None:
+            folder.mkdir(parents=True, exist_ok=True)
+            write_geotiff(
+                folder / "mosaic.tif", mosaic.image, mosaic.west, mosaic.north,
+                mosaic.res_m, mosaic.epsg,
+            )  # fmt: skip
+            write_png(folder / "mosaic.png", mosaic.image)
+
+        return self._attempt(folder / "mosaic.tif", write)
+
+    def _attempt(self, path: Path, write: Callable[[], None]) -> bool:
+        try:
+            write()
+        except OSError as exc:
+            if path not in self._write_failing:
+                self._console.event(f"cannot write {path} ({exc}); will retry")
+                self._write_failing.add(path)
+            return False
+        self._write_failing.discard(path)
+        self.stats.writes += 1
+        return True
+
+    # --- what it holds ------------------------------------------------------------------------
+
+    def vehicles(self) -> list[str]:
+        return sorted(self._vehicles)
+
+    def surveys(self, vehicle: str) -> list[str]:
+        held = self._vehicles.get(vehicle)
+        return sorted(held.surveys) if held is not None else []
+
+    def tiles(self, vehicle: str, survey: str) -> dict[tuple[int, int], HeldTile]:
+        """The tiles held for one survey, by (col, row)."""
+        held = self._vehicles.get(vehicle)
+        if held is None or survey not in held.surveys:
+            return {}
+        return dict(held.surveys[survey].tiles)
+
+    def mosaic(self, vehicle: str, survey: str) -> Mosaic | None:
+        """The survey's tiles as one image spanning them (None without tiles)."""
+        tiles = self.tiles(vehicle, survey)
+        if not tiles:
+            return None
+        info = next(iter(tiles.values())).info
+        grid = TileGrid(res_m=info.res_m, tile_px=info.size_px)
+        image, (west, north) = assemble(grid, {key: t.values for key, t in tiles.items()})
+        return Mosaic(image, west, north, info.res_m, info.epsg)
+
+    def track(self, vehicle: str) -> list[TrackPoint]:
+        held = self._vehicles.get(vehicle)
+        return list(held.track) if held is not None else []
+
+    def status(self, vehicle: str) -> dict[str, Any] | None:
+        held = self._vehicles.get(vehicle)
+        return held.status if held is not None else None
+
+    def alive(self, vehicle: str) -> bool | None:
+        """Whether the vehicle's liveliness token is up (None: never seen)."""
+        held = self._vehicles.get(vehicle)
+        return held.alive if held is not None else None
+
+    def status_line(self) -> str:
+        """One line: per vehicle its survey, pose, frames mapped, lag, links, tiles held,
+        and "boat away" when its liveliness token is gone."""
+        if not self._vehicles:
+            cfg = self.settings.zenoh
+            where = ", ".join(cfg.connect) or "no endpoint"
+            line = f"waiting for {ROOT}/{self.settings.vehicle} ({cfg.mode}, connect {where})"
+        else:
+            line = " ; ".join(_vehicle_line(v, h) for v, h in sorted(self._vehicles.items()))
+        if self.stats.bad:
+            line += f" | bad payloads {self.stats.bad}"
+        return line
+
+
+def _vehicle_line(vehicle: str, held: _Vehicle) -> str:
+    """The most telling first, as a narrow terminal cuts the end off."""
+    status = held.status or {}
+    survey = status.get("survey")
+    if not isinstance(survey, str) or not survey:
+        survey = held.latest_survey
+    parts = [vehicle]
+    if held.alive is False:
+        parts.append("boat away")
+    held_survey = held.surveys.get(survey) if survey else None
+    parts.append(f"survey {survey or '-'}")
+    parts.append(f"tiles {len(held_survey.tiles) if held_survey else 0}")
+    if held.track:
+        p = held.track[-1]
+        parts.append(f"{p.lat:.6f} {p.lon:.6f} hdg {p.heading_deg:.0f}")
+    else:
+        parts.append("no pose")
+    frames = status.get("frames")
+    if isinstance(frames, dict) and isinstance(frames.get("mapped"), int):
+        parts.append(f"mapped {frames['mapped']}")
+    lag = status.get("lag_s")
+    if isinstance(lag, int | float):
+        parts.append(f"lag {lag:.1f} s")
+    links = status.get("links")
+    if isinstance(links, dict) and links:
+        parts.append(
+            " ".join(
+                f"{name} {'up' if isinstance(link, dict) and link.get('up') else 'down'}"
+                for name, link in links.items()
+            )
+        )
+    return " | ".join(parts)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write to a temporary name and rename, so a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as stream:
+        stream.write(data)
+        stream.flush()
+        os.fsync(stream.fileno())
+    os.replace(tmp, path)
+
+
+def _write_track(folder: Path, track: list[TrackPoint]) -> None:
+    """track.csv (the result folder's trajectory columns) and track.geojson (one
+    LineString, WGS84 lon/lat, RFC 7946; no feature until two poses)."""
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(TRACK_HEADER)
+    for p in track:
+        writer.writerow(
+            [f"{p.time:.6f}", f"{p.lat:.9f}", f"{p.lon:.9f}", f"{p.east:.4f}",
+             f"{p.north:.4f}", f"{p.heading_deg:.4f}"]
+        )  # fmt: skip
+    _atomic_write(folder / "track.csv", text.getvalue().encode())
+    features = []
+    if len(track) >= 2:
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {
+                    "type": "LineString",
+                    "coordinates": [[round(p.lon, 9), round(p.lat, 9)] for p in track],
+                },
+                "properties": {
+                    "vehicle": folder.name,
+                    "poses": len(track),
+                    "start_time": track[0].time,
+                    "end_time": track[-1].time,
+                },
+            }
+        )
+    collection = {"type": "FeatureCollection", "features": features}
+    _atomic_write(folder / "track.geojson", json.dumps(collection).encode())
+
+
+def serve(settings: ShoreSettings, duration_s: float | None = None) -> int:
+    """Run a shore station until ``duration_s`` has passed or SIGINT/SIGTERM (the files are
+    then written one last time); 0. A second signal interrupts at once."""
+    station = ShoreStation(settings)
+
+    def on_signal(_signum: int, _frame: FrameType | None) -> None:
+        if station.stopping:
+            raise KeyboardInterrupt
+        station.stop()
+
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    try:
+        with station:
+            station.run(duration_s)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+__all__ = [
+    "DEFAULT_CONNECT",
+    "HeldTile",
+    "Mosaic",
+    "ShoreSettings",
+    "ShoreStation",
+    "ShoreStats",
+    "TrackPoint",
+    "serve",
+    "shore_settings",
+]

@@ -1,0 +1,36 @@
+"""``seamap demo`` end to end (short): emulators, the daemon and the shore station on
+127.0.0.1; the shore's mosaic is the daemon's result, and the accuracy is printed."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+SEAMAP = str(Path(sys.executable).parent / "seamap")
+
+
+def test_demo_runs_the_whole_system_on_loopback(tmp_path: Path) -> None:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "demo"
+    done = subprocess.run(
+        [SEAMAP, "demo", "--out", str(out), "--max-pings", "80",
+         "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr + (out / "daemon.log").read_text()
+    text = done.stdout
+    for step in range(1, 6):
+        assert f"[{step}/5]" in text
+    assert "80 of 80 frames mapped" in text
+    assert "identical to the daemon's" in text, text
+    assert "trajectory error" in text
+    (survey,) = (out / "boat" / "surveys").iterdir()
+    for name in ("mosaic.tif", "mosaic.png", "trajectory.csv", "report.json", "sonar-001.oculus"):
+        assert (survey / name).is_file()
+    shore = out / "shore" / "demo"
+    assert (shore / survey.name / "mosaic.tif").is_file()
+    assert (shore / "track.csv").read_text().startswith("time,lat,lon,east,north,heading_deg")
