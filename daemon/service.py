@@ -65,7 +65,7 @@ from seamap.errors import SeamapError
 from seamap.replay import mount_from_config, pipeline_params
 from seamap.results import write_trajectory
 from seamap.tilespill import DiskSpill
-from seamap.zenoh_io import open_session
+from seamap.zenoh_io import open_session, session_config
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +99,7 @@ class Daemon:
     # --- lifecycle ---------------------------------------------------------------------------
 
     async def run(self) -> int:
+        session_config(self.config.zenoh)  # a malformed [zenoh] is a start-up error
         self._prepare_state_dir()
         loop = asyncio.get_running_loop()
         self.publisher = ZenohPublisher(

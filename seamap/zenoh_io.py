@@ -170,7 +170,13 @@ def endpoint_problem(endpoint: str) -> str | None:
 
 
 def session_config(cfg: ZenohConfig) -> zenoh.Config:
-    """A zenoh configuration from the site config's [zenoh] table (its ``config_file`` first)."""
+    """A zenoh configuration from the site config's [zenoh] table (its ``config_file`` first);
+    SeamapError naming a malformed endpoint."""
+    for key, endpoints in (("listen", cfg.listen), ("connect", cfg.connect)):
+        for endpoint in endpoints:
+            problem = endpoint_problem(endpoint)
+            if problem is not None:
+                raise SeamapError(f"config: [zenoh] {key} {endpoint!r}: {problem}")
     if cfg.config_file:
         try:
             config = zenoh.Config.from_file(cfg.config_file)
