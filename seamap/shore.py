@@ -4,27 +4,20 @@
 and to its liveliness token, and catches up with a ``get`` of every current tile at start
 and each time the boat's token (re)appears. zenoh callbacks only turn what arrives into
 ``_Received`` items on one queue (``_hand_over``, the single bridge from zenoh's threads);
-``run`` takes them off on the caller's thread, applies them and, at a steady cadence,
-rewrites (atomically, only what changed):
+``run`` takes them off on the caller's thread, applies them to what it holds
+(``seamap.shore_state``) and, at a steady cadence, shows a status line and rewrites
+(atomically, only what changed):
 
-- ``DIR/{vehicle}/{survey}/mosaic.tif`` and ``mosaic.png``: the tiles held, assembled
-  north-up on the survey's UTM grid, 0 = no data (the result folder's format);
-- ``DIR/{vehicle}/track.csv`` and ``track.geojson``: every pose received (poses carry no
-  survey id, so the track is the vehicle's);
-- ``DIR/{vehicle}/status.json``: the latest status, as received.
+- ``DIR/{vehicle}/{survey}/mosaic.tif`` and ``mosaic.png``: the survey's tiles held;
+- ``DIR/{vehicle}/track.csv`` and ``track.geojson``: the vehicle's track;
+- ``DIR/{vehicle}/status.json``: its latest status.
 
-A tile replaces the one held only if its attachment's version is higher, so a late
-``get`` reply never undoes a newer live tile. Bad payloads are counted and told in one
-line; they never stop the station.
+Bad payloads are counted and told in one line; they never stop the station.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
-import os
 import queue
 import shutil
 import signal
@@ -39,19 +32,26 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, TextIO
 
-import numpy as np
-import numpy.typing as npt
 import zenoh
 
-from mapping.mosaic import TileGrid, assemble
 from seamap.config import SiteConfig, ZenohConfig
 from seamap.errors import SeamapError
-from seamap.results import write_geotiff, write_png
+from seamap.shore_state import (
+    BadPayload,
+    HeldSurvey,
+    HeldTile,
+    HeldVehicle,
+    Mosaic,
+    ShoreState,
+    TrackPoint,
+    id_problem,
+    write_mosaic,
+    write_status,
+    write_track,
+)
 from seamap.zenoh_io import (
     ROOT,
-    TileInfo,
     alive_key,
-    decode_tile,
     endpoint_problem,
     open_session,
     parse_tile_key,
@@ -70,7 +70,6 @@ MAX_MOSAIC_PX = 500_000_000
 """Mosaics larger than this (tiles far apart, e.g. a long diagonal transit) are not
 assembled: the shore says so once instead of exhausting its memory."""
 BAD_LINE_INTERVAL_S = 1.0
-TRACK_HEADER = ("time", "lat", "lon", "east", "north", "heading_deg")
 
 
 def _default_session() -> ZenohConfig:
@@ -128,48 +127,9 @@ def shore_settings(
         vehicle = config.daemon.vehicle if config is not None else "*"
     survey = "*" if survey is None else survey
     for name, value in (("--vehicle", vehicle), ("--survey", survey)):
-        if value != "*" and _id_problem(value):
-            raise SeamapError(f"{name} {value!r}: {_id_problem(value)}")
+        if value != "*" and id_problem(value):
+            raise SeamapError(f"{name} {value!r}: {id_problem(value)}")
     return ShoreSettings(out_dir=out_dir, zenoh=session, vehicle=vehicle, survey=survey)
-
-
-def _id_problem(value: str) -> str | None:
-    """Why ``value`` cannot be a vehicle or survey id (a key chunk and a folder name)."""
-    if not value or value in (".", ".."):
-        return "not an id"
-    if any(c in value for c in "/*?#$") or any(c.isspace() for c in value):
-        return "an id holds no '/', '*', '?', '#', '$' or spaces"
-    return None
-
-
-@dataclass(frozen=True, slots=True)
-class TrackPoint:
-    """One pose as received: UNIX s, WGS84 degrees, UTM metres, degrees from true north."""
-
-    time: float
-    lat: float
-    lon: float
-    east: float
-    north: float
-    heading_deg: float
-
-
-@dataclass(frozen=True, slots=True)
-class HeldTile:
-    info: TileInfo
-    values: npt.NDArray[np.uint8]
-    """size_px x size_px, north-up, 0 = no data."""
-
-
-@dataclass(frozen=True)
-class Mosaic:
-    """A survey's tiles as one north-up image; (west, north) is its top-left corner (UTM m)."""
-
-    image: npt.NDArray[np.uint8]
-    west: float
-    north: float
-    res_m: float
-    epsg: int
 
 
 @dataclass
@@ -217,25 +177,6 @@ def _received(via: _Via, sample: zenoh.Sample) -> _Received:
         None if attachment is None else attachment.to_bytes(),
         sample.kind == zenoh.SampleKind.PUT,
     )
-
-
-@dataclass
-class _Survey:
-    tiles: dict[tuple[int, int], HeldTile] = field(default_factory=dict)
-    changed: bool = False
-    too_big_told: bool = False
-
-
-@dataclass
-class _Vehicle:
-    alive: bool | None = None
-    track: list[TrackPoint] = field(default_factory=list)
-    track_changed: bool = False
-    status: dict[str, Any] | None = None
-    status_raw: bytes = b""
-    status_changed: bool = False
-    surveys: dict[str, _Survey] = field(default_factory=dict)
-    latest_survey: str | None = None
 
 
 class _Console:
@@ -293,7 +234,7 @@ class ShoreStation:
         self._clock = clock
         self._inbox: queue.SimpleQueue[_Received] = queue.SimpleQueue()
         self._session: zenoh.Session | None = None
-        self._vehicles: dict[str, _Vehicle] = {}
+        self._state = ShoreState()
         self._stop_requested = False
         self._status_interval = settings.status_interval_s or (
             TTY_STATUS_INTERVAL_S if self._console.tty else LOG_STATUS_INTERVAL_S
@@ -448,114 +389,49 @@ class ShoreStation:
             return
         parts = item.key.split("/")
         if item.via is _Via.LIVELINESS:
-            if len(parts) == 3 and parts[2] == "alive" and not _id_problem(parts[1]):
+            if len(parts) == 3 and parts[2] == "alive" and not id_problem(parts[1]):
                 self._take_liveliness(parts[1], item.put)
             return
-        if len(parts) == 3 and parts[0] == ROOT and parts[2] in ("pose", "status"):
-            if _id_problem(parts[1]):
-                self._bad(item.key, "vehicle id unusable as a folder name")
-            elif not item.put:
-                pass  # a delete of the pose or status means nothing here
-            elif parts[2] == "pose":
-                self._take_pose(parts[1], item)
+        try:
+            if len(parts) == 3 and parts[0] == ROOT and parts[2] in ("pose", "status"):
+                self._take_pose_or_status(parts[1], parts[2], item)
             else:
-                self._take_status(parts[1], item)
-            return
-        self._take_tile(item)
-
-    def _vehicle(self, vehicle: str) -> _Vehicle:
-        return self._vehicles.setdefault(vehicle, _Vehicle())
+                self._take_tile(item)
+        except BadPayload as exc:
+            self._bad(item.key, str(exc))
 
     def _take_liveliness(self, vehicle: str, alive: bool) -> None:
-        held = self._vehicle(vehicle)
+        self._state.take_liveliness(vehicle, alive)
         if alive:
             self.stats.arrivals += 1
-            held.alive = True
             self._console.event(f"{vehicle}: boat up, catching up")
             self.catch_up(vehicle)
         else:
             self.stats.departures += 1
-            held.alive = False
             self._console.event(f"{vehicle}: boat away (its map is kept; waiting for it)")
 
-    def _take_pose(self, vehicle: str, item: _Received) -> None:
-        try:
-            raw = json.loads(item.payload)
-            point = TrackPoint(*(float(raw[name]) for name in TRACK_HEADER))
-        except (ValueError, KeyError, TypeError) as exc:
-            self._bad(item.key, f"not a pose ({type(exc).__name__}: {exc})")
-            return
-        values = (point.time, point.lat, point.lon, point.east, point.north, point.heading_deg)
-        if not all(math.isfinite(v) for v in values) or abs(point.lat) > 90 or abs(point.lon) > 180:
-            self._bad(item.key, "pose not finite or out of range")
-            return
-        held = self._vehicle(vehicle)
-        held.track.append(point)
-        held.track_changed = True
-        self.stats.poses += 1
-
-    def _take_status(self, vehicle: str, item: _Received) -> None:
-        try:
-            status = json.loads(item.payload)
-        except ValueError as exc:
-            self._bad(item.key, f"status is not JSON ({exc})")
-            return
-        if not isinstance(status, dict):
-            self._bad(item.key, "status is not a JSON object")
-            return
-        held = self._vehicle(vehicle)
-        held.status, held.status_raw, held.status_changed = status, item.payload, True
-        self.stats.statuses += 1
+    def _take_pose_or_status(self, vehicle: str, what: str, item: _Received) -> None:
+        if id_problem(vehicle):
+            raise BadPayload("vehicle id unusable as a folder name")
+        if not item.put:
+            return  # a delete of the pose or status means nothing here
+        if what == "pose":
+            self._state.take_pose(vehicle, item.payload)
+            self.stats.poses += 1
+        else:
+            self._state.take_status(vehicle, item.payload)
+            self.stats.statuses += 1
 
     def _take_tile(self, item: _Received) -> None:
         where = parse_tile_key(item.key)
         if where is None:
-            self._bad(item.key, "not a tile key")
-            return
+            raise BadPayload("not a tile key")
         if not item.put:
             return  # the contract has no tile deletes; keep what we hold
-        if _id_problem(where.vehicle) or _id_problem(where.survey):
-            self._bad(item.key, "vehicle or survey id unusable as a folder name")
-            return
-        if item.attachment is None:
-            self._bad(item.key, "tile without attachment")
-            return
-        try:
-            info = TileInfo.from_json(item.attachment)
-        except ValueError as exc:
-            self._bad(item.key, str(exc))
-            return
-        key = (where.col, where.row)
-        if info.key() != key:
-            self._bad(item.key, f"attachment places the tile at {info.key()}, not {key}")
-            return
-        vehicle = self._vehicles.get(where.vehicle)
-        survey = vehicle.surveys.get(where.survey) if vehicle is not None else None
-        held = survey.tiles.get(key) if survey is not None else None
-        if held is not None and info.version <= held.info.version:
+        if self._state.take_tile(where, item.payload, item.attachment):
+            self.stats.tiles_taken += 1
+        else:
             self.stats.tiles_stale += 1
-            return
-        if survey is not None and survey.tiles:
-            grid = next(iter(survey.tiles.values())).info
-            if (info.epsg, info.size_px) != (grid.epsg, grid.size_px) or not math.isclose(
-                info.res_m, grid.res_m, rel_tol=1e-9
-            ):
-                self._bad(item.key, "tile grid (epsg, res_m, size_px) differs from the survey's")
-                return
-        try:
-            values = decode_tile(item.payload)
-        except ValueError as exc:
-            self._bad(item.key, str(exc))
-            return
-        if values.shape != (info.size_px, info.size_px):
-            self._bad(item.key, f"tile is {values.shape}, attachment says {info.size_px} px")
-            return
-        vehicle = self._vehicle(where.vehicle)
-        survey = vehicle.surveys.setdefault(where.survey, _Survey())
-        survey.tiles[key] = HeldTile(info, values)
-        survey.changed = True
-        vehicle.latest_survey = where.survey
-        self.stats.tiles_taken += 1
 
     def _bad(self, key: str, reason: str) -> None:
         """Count a bad payload; tell it in one line, at most one line a second per kind
@@ -585,25 +461,21 @@ class ShoreStation:
         """Write what changed since the last write; a failed write is told once and retried
         at the next cadence."""
         out_dir = self.settings.out_dir
-        for vehicle, held in self._vehicles.items():
+        for vehicle, held in self._state.vehicles.items():
             folder = out_dir / vehicle
             if held.track_changed:
-                write_track = partial(_write_track, folder, held.track)
-                held.track_changed = not self._attempt(folder / "track.csv", write_track)
+                track = partial(write_track, folder, held.track)
+                held.track_changed = not self._attempt(folder / "track.csv", track)
             if held.status_changed:
-                path = folder / "status.json"
-                write_status = partial(_atomic_write, path, held.status_raw)
-                held.status_changed = not self._attempt(path, write_status)
+                status = partial(write_status, folder, held.status_raw)
+                held.status_changed = not self._attempt(folder / "status.json", status)
             for survey_id, survey in held.surveys.items():
                 if survey.changed:
                     survey.changed = not self._write_mosaic(vehicle, survey_id, survey)
 
-    def _write_mosaic(self, vehicle: str, survey_id: str, survey: _Survey) -> bool:
+    def _write_mosaic(self, vehicle: str, survey_id: str, survey: HeldSurvey) -> bool:
         folder = self.settings.out_dir / vehicle / survey_id
-        cols = [key[0] for key in survey.tiles]
-        rows = [key[1] for key in survey.tiles]
-        size = next(iter(survey.tiles.values())).info.size_px
-        pixels = (max(cols) - min(cols) + 1) * (max(rows) - min(rows) + 1) * size * size
+        pixels = survey.mosaic_px()
         if pixels > MAX_MOSAIC_PX:
             if not survey.too_big_told:
                 self._console.event(
@@ -612,19 +484,10 @@ class ShoreStation:
                 )
                 survey.too_big_told = True
             return True
-        mosaic = self.mosaic(vehicle, survey_id)
+        mosaic = survey.mosaic()
         if mosaic is None:
             return True
-
-        def write() -> None:
-            folder.mkdir(parents=True, exist_ok=True)
-            write_geotiff(
-                folder / "mosaic.tif", mosaic.image, mosaic.west, mosaic.north,
-                mosaic.res_m, mosaic.epsg,
-            )  # fmt: skip
-            write_png(folder / "mosaic.png", mosaic.image)
-
-        return self._attempt(folder / "mosaic.tif", write)
+        return self._attempt(folder / "mosaic.tif", partial(write_mosaic, folder, mosaic))
 
     def _attempt(self, path: Path, write: Callable[[], None]) -> bool:
         try:
@@ -641,57 +504,45 @@ class ShoreStation:
     # --- what it holds ------------------------------------------------------------------------
 
     def vehicles(self) -> list[str]:
-        return sorted(self._vehicles)
+        return sorted(self._state.vehicles)
 
     def surveys(self, vehicle: str) -> list[str]:
-        held = self._vehicles.get(vehicle)
+        held = self._state.vehicles.get(vehicle)
         return sorted(held.surveys) if held is not None else []
 
     def tiles(self, vehicle: str, survey: str) -> dict[tuple[int, int], HeldTile]:
         """The tiles held for one survey, by (col, row)."""
-        held = self._vehicles.get(vehicle)
-        if held is None or survey not in held.surveys:
-            return {}
-        return dict(held.surveys[survey].tiles)
+        return self._state.tiles(vehicle, survey)
 
     def mosaic(self, vehicle: str, survey: str) -> Mosaic | None:
         """The survey's tiles as one image spanning them (None without tiles)."""
-        tiles = self.tiles(vehicle, survey)
-        if not tiles:
-            return None
-        info = next(iter(tiles.values())).info
-        grid = TileGrid(res_m=info.res_m, tile_px=info.size_px)
-        image, (west, north) = assemble(grid, {key: t.values for key, t in tiles.items()})
-        return Mosaic(image, west, north, info.res_m, info.epsg)
+        return self._state.mosaic(vehicle, survey)
 
     def track(self, vehicle: str) -> list[TrackPoint]:
-        held = self._vehicles.get(vehicle)
-        return list(held.track) if held is not None else []
+        return self._state.track(vehicle)
 
     def status(self, vehicle: str) -> dict[str, Any] | None:
-        held = self._vehicles.get(vehicle)
-        return held.status if held is not None else None
+        return self._state.status(vehicle)
 
     def alive(self, vehicle: str) -> bool | None:
         """Whether the vehicle's liveliness token is up (None: never seen)."""
-        held = self._vehicles.get(vehicle)
-        return held.alive if held is not None else None
+        return self._state.alive(vehicle)
 
     def status_line(self) -> str:
         """One line: per vehicle its survey, pose, frames mapped, lag, links, tiles held,
         and "boat away" when its liveliness token is gone."""
-        if not self._vehicles:
+        if not self._state.vehicles:
             cfg = self.settings.zenoh
             where = ", ".join(cfg.connect) or "no endpoint"
             line = f"waiting for {ROOT}/{self.settings.vehicle} ({cfg.mode}, connect {where})"
         else:
-            line = " ; ".join(_vehicle_line(v, h) for v, h in sorted(self._vehicles.items()))
+            line = " ; ".join(_vehicle_line(v, h) for v, h in sorted(self._state.vehicles.items()))
         if self.stats.bad:
             line += f" | bad payloads {self.stats.bad}"
         return line
 
 
-def _vehicle_line(vehicle: str, held: _Vehicle) -> str:
+def _vehicle_line(vehicle: str, held: HeldVehicle) -> str:
     """The most telling first, as a narrow terminal cuts the end off."""
     status = held.status or {}
     survey = status.get("survey")
@@ -723,50 +574,6 @@ def _vehicle_line(vehicle: str, held: _Vehicle) -> str:
             )
         )
     return " | ".join(parts)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write to a temporary name and rename, so a reader never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as stream:
-        stream.write(data)
-        stream.flush()
-        os.fsync(stream.fileno())
-    os.replace(tmp, path)
-
-
-def _write_track(folder: Path, track: list[TrackPoint]) -> None:
-    """track.csv (the result folder's trajectory columns) and track.geojson (one
-    LineString, WGS84 lon/lat, RFC 7946; no feature until two poses)."""
-    text = io.StringIO()
-    writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(TRACK_HEADER)
-    for p in track:
-        writer.writerow(
-            [f"{p.time:.6f}", f"{p.lat:.9f}", f"{p.lon:.9f}", f"{p.east:.4f}",
-             f"{p.north:.4f}", f"{p.heading_deg:.4f}"]
-        )  # fmt: skip
-    _atomic_write(folder / "track.csv", text.getvalue().encode())
-    features = []
-    if len(track) >= 2:
-        features.append(
-            {
-                "type": "Feature",
-                "geometry": {
-                    "type": "LineString",
-                    "coordinates": [[round(p.lon, 9), round(p.lat, 9)] for p in track],
-                },
-                "properties": {
-                    "vehicle": folder.name,
-                    "poses": len(track),
-                    "start_time": track[0].time,
-                    "end_time": track[-1].time,
-                },
-            }
-        )
-    collection = {"type": "FeatureCollection", "features": features}
-    _atomic_write(folder / "track.geojson", json.dumps(collection).encode())
 
 
 def serve(settings: ShoreSettings, duration_s: float | None = None) -> int:
