@@ -1,0 +1,243 @@
+"""``seamap survey plan|start|status|pause|resume|abort``: survey missions on the autopilot.
+
+``plan`` turns an area into a QGroundControl ``.plan`` (``seamap.plan_files``); the others
+talk to the autopilot through MAVSDK (``drivers.mission``). ``start`` then asks the boat
+daemon over zenoh to open a survey. Exit status: 0 done; 2 refused (one line on stderr,
+nothing started); 1 the mission runs but the daemon did not open a survey.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from collections.abc import Sized
+from pathlib import Path
+from typing import Any
+
+from seamap.errors import SeamapError
+
+TIMEOUT_HELP = "the longest one step may take, in seconds (default %(default)s)"
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "survey",
+        help="plan a survey mission, start it on the autopilot, follow and steer it",
+        description=(
+            "Survey missions on the autopilot (ArduPilot Rover or PX4) through MAVSDK. "
+            "--connect takes udpin://HOST:PORT (listen), udpout://HOST:PORT (send to) or "
+            "serial:///dev/ttyX:BAUD."
+        ),
+    )
+    actions = parser.add_subparsers(dest="survey_command", metavar="ACTION", required=True)
+
+    plan = actions.add_parser(
+        "plan",
+        help="lanes over an area as a QGroundControl .plan",
+        description="Lawnmower lanes over a GeoJSON area, written as a QGroundControl .plan.",
+    )
+    plan.add_argument("--area", type=Path, required=True, help="the area, a GeoJSON polygon")
+    plan.add_argument(
+        "--spacing",
+        type=float,
+        help="lane spacing in metres (default: from the sonar's swath and --overlap)",
+    )
+    plan.add_argument("--overlap", type=float, help="overlap of neighbouring swaths, 0..1")
+    plan.add_argument(
+        "--angle",
+        type=float,
+        help="lane direction, degrees from north (default: along the area's longest side)",
+    )
+    plan.add_argument("--speed", type=float, default=1.0, help="survey speed, m/s (%(default)s)")
+    plan.add_argument(
+        "--lead-in",
+        type=float,
+        default=5.0,
+        help="straight run before each lane, metres (%(default)s)",
+    )
+    plan.add_argument(
+        "--entry",
+        choices=("nw", "ne", "sw", "se", "auto"),
+        default="auto",
+        help="corner to start from (%(default)s)",
+    )
+    plan.add_argument(
+        "--firmware",
+        choices=("ardupilot", "px4"),
+        default="ardupilot",
+        help="autopilot the plan is for (%(default)s)",
+    )
+    plan.add_argument("--config", type=Path, help="the site TOML file (sonar mount and range)")
+    plan.add_argument("--out", type=Path, required=True, help="the .plan file to write")
+    plan.set_defaults(handler=run_plan)
+
+    start = actions.add_parser(
+        "start",
+        help="upload a .plan, check it, arm, start it and open a survey on the daemon",
+        description=(
+            "Upload PLAN.plan to the autopilot, read it back and compare, arm, start the "
+            "mission (AUTO) and ask the boat daemon over zenoh to open a survey. Refuses, "
+            "with nothing started, without a 3D GPS fix and a home position, when the "
+            "upload fails or reads back different, or when the autopilot will not arm."
+        ),
+    )
+    start.add_argument("plan", type=Path, help="a QGroundControl .plan file")
+    _connect_arguments(start)
+    start.add_argument(
+        "--config", type=Path, help="a site TOML file: the daemon's [daemon] vehicle and [zenoh]"
+    )
+    start.add_argument(
+        "--daemon",
+        metavar="ENDPOINT",
+        help="the daemon's zenoh endpoint, e.g. tcp/192.168.1.10:7447",
+    )
+    start.add_argument("--vehicle", help="the daemon's vehicle id (with --daemon)")
+    start.add_argument(
+        "--firmware", choices=("ardupilot", "px4"), help="override the plan's mission.firmwareType"
+    )
+    start.set_defaults(handler=run_start)
+
+    for name, what in (
+        ("status", "the mission's progress (current item of total), mode and arming"),
+        ("pause", "hold where the boat is (HOLD)"),
+        ("resume", "continue the mission (AUTO)"),
+        ("abort", "give up the mission and return to launch (RTL)"),
+    ):
+        action = actions.add_parser(name, help=what, description=what[0].upper() + what[1:] + ".")
+        _connect_arguments(action)
+        if name == "status":
+            action.add_argument("--json", action="store_true", help="print one JSON object")
+        action.set_defaults(handler=run_steer)
+
+
+def _connect_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--connect", metavar="URL", required=True, help="the autopilot's MAVLink link (MAVSDK URL)"
+    )
+    parser.add_argument("--timeout", type=float, default=20.0, help=TIMEOUT_HELP)
+
+
+def _check_timeout(args: argparse.Namespace) -> None:
+    if not args.timeout > 0:
+        raise SeamapError(f"--timeout {args.timeout:g}: must be more than 0 seconds")
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    from seamap.config import load_config
+
+    config = load_config(args.config)
+    options: dict[str, Any] = {
+        "spacing_m": args.spacing,
+        "angle_deg": args.angle,
+        "speed_mps": args.speed,
+        "lead_in_m": args.lead_in,
+        "entry": args.entry,
+        "firmware": args.firmware,
+    }
+    if args.overlap is not None:
+        options["overlap"] = args.overlap
+    planner: Any = importlib.import_module("seamap.plan_files")
+    summary: dict[str, Any] = planner.plan_survey(args.area, args.out, config, **options)
+    print(format_plan_summary(args.out, summary))
+    return 0
+
+
+def format_plan_summary(out: Path, summary: dict[str, Any]) -> str:
+    def count(value: Any) -> int:
+        return len(value) if isinstance(value, Sized) else int(value)
+
+    area, covered = float(summary["area_m2"]), float(summary["covered_m2"])
+    coverage = 100.0 * covered / area if area > 0 else 100.0 * float(summary["coverage"])
+    spacing = f"spacing {summary['spacing_m']:.2f} m"
+    if "swath_m" in summary and "overlap" in summary:
+        spacing += f" (swath {summary['swath_m']:.2f} m, overlap {100 * summary['overlap']:.0f} %)"
+    lines = [
+        f"{out}: {count(summary['lanes'])} lanes, {count(summary['waypoints'])} waypoints, "
+        f"{spacing}, lanes at {summary['angle_deg']:.1f}° from north",
+        f"  {summary['distance_m'] / 1000:.2f} km, about {summary['duration_s'] / 60:.0f} min; "
+        f"covers {covered:.0f} of {area:.0f} m² ({coverage:.1f} %)",
+    ]
+    lines += [f"  wrote {path}" for path in summary.get("files") or ()]
+    return "\n".join(lines)
+
+
+def run_start(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from drivers import mission
+    from seamap.config import load_config
+
+    _check_timeout(args)
+    # Everything that can be wrong with the command line is found before the boat moves.
+    plan = mission.load_plan(args.plan)
+    url = mission.mavsdk_url(args.connect)
+    config = load_config(args.config) if args.config is not None else None
+    target = mission.daemon_target(config, args.daemon, args.vehicle)
+    firmware = mission.Firmware(args.firmware) if args.firmware else None
+
+    started = asyncio.run(mission.start_survey(plan, url, args.timeout, firmware))
+    ready = started.readiness
+    print(
+        f"mission started: {started.plan_items} items of {args.plan} on {started.firmware.value} "
+        f"({started.items_sent} uploaded and read back), "
+        f"{'already armed' if started.was_armed else 'armed'}, AUTO; "
+        f"GPS {ready.fix} with {ready.satellites} satellites"
+    )
+    if target is None:
+        print(
+            "no daemon to tell (--config or --daemon): no survey opened; "
+            "open one with `seamap ctl start`"
+        )
+        return 0
+    answer = mission.request_survey_start(target, timeout_s=min(args.timeout, 10.0))
+    if answer.survey is not None:
+        print(f"survey {answer.survey} recording on {target.vehicle}")
+        return 0
+    # The boat is under way: undoing the mission would leave it holding on the water, and
+    # a survey can still be opened by hand; so say so and let it run.
+    print(
+        f"seamap survey: the mission runs, but no survey was opened: {answer.problem}; "
+        "open one with `seamap ctl start`",
+        file=sys.stderr,
+    )
+    return 1
+
+
+def run_steer(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from drivers import mission
+
+    _check_timeout(args)
+    url = mission.mavsdk_url(args.connect)
+    if args.survey_command == "status":
+        status = asyncio.run(mission.mission_status(url, args.timeout))
+        if args.json:
+            print(json.dumps(status.as_dict(), sort_keys=True))
+        else:
+            print(format_status(status.as_dict()))
+        return 0
+    steer = {
+        "pause": (mission.pause_survey, "holding (HOLD)"),
+        "resume": (mission.resume_survey, "mission continues (AUTO)"),
+        "abort": (mission.abort_survey, "returning to launch (RTL)"),
+    }
+    step, done = steer[args.survey_command]
+    asyncio.run(step(url, args.timeout))
+    print(done)
+    return 0
+
+
+def format_status(status: dict[str, Any]) -> str:
+    total = status["total"]
+    item = f"item {status['current']} of {total if total is not None else '?'}"
+    if status["fraction"] is not None:
+        item += f" ({100 * status['fraction']:.0f} %)"
+    parts = [item]
+    if status["state"]:
+        parts.append(f"mission {status['state']}")
+    parts.append(f"{status['flight_mode']} mode")
+    parts.append("armed" if status["armed"] else "disarmed")
+    return ", ".join(parts)
