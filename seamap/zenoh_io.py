@@ -182,6 +182,7 @@ def session_config(cfg: ZenohConfig) -> zenoh.Config:
             config = zenoh.Config.from_file(cfg.config_file)
         except Exception as exc:
             raise SeamapError(f"{cfg.config_file}: not a usable zenoh config ({exc})") from None
+        _refuse_example_secrets(cfg.config_file, config)
     else:
         config = zenoh.Config()
     try:
@@ -192,6 +193,33 @@ def session_config(cfg: ZenohConfig) -> zenoh.Config:
     except Exception as exc:
         raise SeamapError(f"config: [zenoh] is not valid for zenoh ({exc})") from None
     return config
+
+
+PLACEHOLDER = "REPLACE-ME"
+"""Marks the example security files' passwords (systemd/zenoh-*.json5, zenoh-users)."""
+
+
+def _refuse_example_secrets(path: str, config: zenoh.Config) -> None:
+    """SeamapError when the zenoh config (or its user dictionary) still holds the
+    example's placeholder password: a boat must not run with a published secret."""
+    try:
+        auth = json.loads(config.get_json("transport/auth/usrpwd"))
+    except Exception:
+        return
+    if not isinstance(auth, dict):
+        return
+    if PLACEHOLDER in str(auth.get("password") or ""):
+        raise SeamapError(f"{path}: the password is still the example's {PLACEHOLDER}...")
+    dictionary = auth.get("dictionary_file")
+    if dictionary:
+        try:
+            text = open(dictionary, encoding="utf-8").read()  # noqa: SIM115
+        except OSError as exc:
+            raise SeamapError(
+                f"{dictionary}: cannot read the zenoh user dictionary ({exc})"
+            ) from None
+        if PLACEHOLDER in text:
+            raise SeamapError(f"{dictionary}: a password is still the example's {PLACEHOLDER}...")
 
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:

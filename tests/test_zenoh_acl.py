@@ -33,6 +33,7 @@ import zenoh
 from seamap.config import ZenohConfig
 from seamap.errors import SeamapError
 from seamap.zenoh_io import (
+    PLACEHOLDER,
     TileInfo,
     alive_key,
     control_key,
@@ -52,6 +53,7 @@ SYSTEMD_DIR = Path(__file__).resolve().parents[1] / "systemd"
 BOAT_JSON5 = SYSTEMD_DIR / "zenoh-boat.json5"
 SHORE_JSON5 = SYSTEMD_DIR / "zenoh-shore.json5"
 USERS_EXAMPLE = SYSTEMD_DIR / "zenoh-users.example.txt"
+TEST_PASSWORD = "test-only-7f3a9c"
 INSTALL_DIR = "/etc/seamap/"  # where the example files expect themselves and the TLS files
 
 OPENSSL = shutil.which("openssl")
@@ -100,10 +102,19 @@ def make_certificate(tls: Path, name: str, common_name: str, extensions: str, ca
     )  # fmt: skip
 
 
+def with_password(text: str) -> str:
+    """The example's placeholder password replaced, as an installer must (the daemon and
+    the shore refuse to run with it)."""
+    assert PLACEHOLDER in text
+    return text.replace(f"{PLACEHOLDER}-shore-password", TEST_PASSWORD)
+
+
 def installed_copy(source: Path, etc: Path) -> Path:
-    """``source`` as installed under ``etc`` instead of /etc/seamap/: nothing else changes."""
+    """``source`` as installed under ``etc`` instead of /etc/seamap/, with a real password."""
     text = source.read_text(encoding="utf-8")
     assert INSTALL_DIR in text, f"{source.name} no longer refers to {INSTALL_DIR}"
+    if PLACEHOLDER in text:
+        text = with_password(text)
     target = etc / source.name
     target.write_text(text.replace(INSTALL_DIR, f"{etc}/"), encoding="utf-8")
     return target
@@ -133,7 +144,7 @@ def install(tmp_path_factory: pytest.TempPathFactory) -> Install:
         tls, "shore", "shore", "subjectAltName=DNS:shore\nextendedKeyUsage=clientAuth\n", ca="ca"
     )
     make_ca(tls, "other-ca")  # a CA the shore does not trust
-    shutil.copyfile(USERS_EXAMPLE, etc / "zenoh-users.txt")
+    (etc / "zenoh-users.txt").write_text(with_password(USERS_EXAMPLE.read_text()))
     return Install(installed_copy(BOAT_JSON5, etc), installed_copy(SHORE_JSON5, etc), tls)
 
 
@@ -485,3 +496,15 @@ def test_mutual_tls_admits_the_shore_certificate_only(install: Install) -> None:
             del subs
     finally:
         boat.session.close()
+
+
+def test_the_example_placeholder_password_is_refused(tmp_path: Path) -> None:
+    """Installed as shipped, without replacing REPLACE-ME, the boat will not start."""
+    etc = tmp_path / "etc"
+    etc.mkdir()
+    text = (SYSTEMD_DIR / "zenoh-boat.json5").read_text().replace(INSTALL_DIR, f"{etc}/")
+    (etc / "zenoh-boat.json5").write_text(text)
+    shutil.copyfile(USERS_EXAMPLE, etc / "zenoh-users.txt")
+    cfg = ZenohConfig(listen=["tls/127.0.0.1:7447"], config_file=str(etc / "zenoh-boat.json5"))
+    with pytest.raises(SeamapError, match="still the example's REPLACE-ME"):
+        session_config(cfg)
