@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import socket
 import sys
 import threading
 import time
@@ -47,24 +46,13 @@ from seamap.cli import build_parser, main
 from seamap.config import SiteConfig, ZenohConfig, config_from_dict
 from seamap.errors import SeamapError
 from seamap.zenoh_io import control_key, json_bytes, open_session
+from tests.ports import free_tcp_port, free_udp_port
 
 HOME = (47.3977419, 8.5455938, 488.25)  # lat, lon (degrees), AMSL (m)
 WAYPOINTS = [(47.3978, 8.5456), (47.39795, 8.54575), (47.3981, 8.5456), (47.39825, 8.54575)]
 SPEED_MPS = 1.5
 VEHICLE = "testboat"
 SLACK_S = 5.0  # what a refusal may take beyond its time-out on a slow machine
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def write_plan(folder: Path, firmware_type: int = 3) -> Path:

@@ -7,7 +7,6 @@ import csv
 import io
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -38,6 +37,7 @@ from seamap.zenoh_io import (
     tile_key,
     tiles_selector,
 )
+from tests.ports import free_tcp_port as free_port
 
 VEHICLE = "boat1"
 SURVEY = "s1"
@@ -49,12 +49,6 @@ COL0, ROW0 = 156250, 1500000  # easting 500 000 m, northing 4 800 000 m
 WAIT_S = 20.0  # generous: conditions are waited for, never assumed after a fixed time
 
 Tile = npt.NDArray[np.uint8]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 def loopback_peer(listen: list[str] | None = None, connect: list[str] | None = None) -> ZenohConfig:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import socket
 import subprocess
 import threading
 import time
@@ -48,6 +47,7 @@ from seamap.zenoh_io import (
     tile_key,
     tiles_selector,
 )
+from tests.ports import free_tcp_port
 
 SYSTEMD_DIR = Path(__file__).resolve().parents[1] / "systemd"
 BOAT_JSON5 = SYSTEMD_DIR / "zenoh-boat.json5"
@@ -67,12 +67,6 @@ QUIET_S = 1.5  # how long a negative check waits after its positive control came
 TIMEOUT_S = 10.0  # how long a positive check may take before it fails
 TILE_VALUES = np.arange(1, 17, dtype=np.uint8).reshape(4, 4)
 TILE_INFO = TileInfo(epsg=32631, res_m=0.02, west=15.36, north=-10.24, size_px=4, version=1)
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 # --- certificates (README.md, "Securing the link") and the installed example files ---------

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import sys
 import time
 import tomllib
@@ -17,20 +16,9 @@ from daemon.control import request
 from seamap.config import ZenohConfig, config_from_dict, dump_config
 from seamap.errors import SeamapError
 from seamap.zenoh_io import open_session
+from tests.ports import free_tcp_port, free_udp_port
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def zenoh_table(port: int | None = None) -> dict[str, Any]:

@@ -8,7 +8,6 @@ import asyncio
 import json
 import shutil
 import signal
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -19,13 +18,8 @@ from daemon.survey import SurveyState, write_state
 from drivers.oculus.logfile import OculusLogWriter
 from seamap.config import config_from_dict, dump_config
 from tests.daemon.harness import SEAMAP, DaemonProcess, free_udp_port, zenoh_table
+from tests.ports import free_tcp_port as closed_tcp_port
 from tools.sim import simulate
-
-
-def closed_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def config_file(tmp_path: Path, **daemon: object) -> Path:

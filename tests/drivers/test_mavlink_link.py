@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import socket
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -19,6 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from drivers.mavlink.link import MavlinkLink
 from drivers.mavlink.navlog import NavLog, read_nav_log
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample
+from tests.ports import free_udp_port
 from tools.emulators.autopilot import AutopilotEmulator
 from tools.sim import simulate
 
@@ -29,12 +29,6 @@ TIMEOUT_S = 10.0
 def survey(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, NavLog]:
     summary = simulate("quadrats", 3, tmp_path_factory.mktemp("sim"), duration_s=4.0, n_beams=64)
     return summary.nav_path, read_nav_log(summary.nav_path)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def until(condition: Callable[[], bool], timeout_s: float = TIMEOUT_S) -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import socket
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 
@@ -15,6 +14,7 @@ from drivers.oculus import FireFlags, OculusFramer, PingRate, SimpleFire, parse_
 from drivers.oculus.link import FireSettings, LinkTiming, OculusLink
 from mapping.samples import Ping
 from tests.drivers.test_oculus_protocol import make_ping
+from tests.ports import free_udp_port
 from tools.emulators.sonar import SonarEmulator, encode_ping
 
 TIMEOUT_S = 5.0
@@ -32,12 +32,6 @@ def source(count: int = 1000) -> Iterator[Ping]:
     """Small pings with ids 0, 1, 2... (and images seeded by the id)."""
     for k in range(count):
         yield make_ping(n_beams=32, n_ranges=20, seed=k, ping_id=k)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def run(test: Callable[[], Awaitable[None]]) -> None:

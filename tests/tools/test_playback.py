@@ -8,7 +8,6 @@ import asyncio
 import contextlib
 import dataclasses
 import itertools
-import socket
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from drivers.mavlink.link import MavlinkLink
 from drivers.oculus.link import LinkTiming, OculusLink
 from drivers.oculus.logfile import iter_pings
 from mapping.samples import Ping
+from tests.ports import free_udp_port
 from tools.emulators.autopilot import read_autopilot_messages
 from tools.emulators.playback import PlaybackClock, SurveyPlayback, main
 from tools.sim import simulate
@@ -64,12 +64,6 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> Survey:
     }
     assert len(ping_time) == 60 and len(gps_time) >= 10
     return Survey(summary.sonar_path, summary.nav_path, ping_time, gps_time)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def until(condition: Callable[[], bool], timeout_s: float) -> None:
