@@ -31,7 +31,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import os
 import shutil
 import signal
@@ -51,7 +50,6 @@ from daemon.supervisor import Supervisor
 from daemon.survey import (
     SurveyState,
     new_survey_id,
-    read_state,
     surveys_dir,
     unfinished,
     write_state,
@@ -564,15 +562,4 @@ class Daemon:
         survey = self._survey_id() or "no survey"
         if not snap:
             return survey
-        frames = snap["frames"]
-        lag = snap["lag_s"]
-        return (
-            f"{survey}: {frames['mapped']} frames mapped, lag {lag:.1f} s"
-            if math.isfinite(lag)
-            else survey
-        )
-
-
-def state_of(state_dir: Path, survey_id: str) -> SurveyState | None:
-    """A survey's state from its folder (for tests and tools)."""
-    return read_state(surveys_dir(state_dir) / survey_id)
+        return f"{survey}: {snap['frames']['mapped']} frames mapped, lag {snap['lag_s']:.1f} s"

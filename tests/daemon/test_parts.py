@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import logging
 import threading
 from pathlib import Path
@@ -241,4 +240,3 @@ def test_control_socket_commands_and_errors(tmp_path: Path) -> None:
     assert not path.exists()  # removed on shutdown
     with pytest.raises(SeamapError, match="no daemon control socket"):
         request(path, "status")
-    json.dumps(replies)
