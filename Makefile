@@ -4,8 +4,10 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
+ACCURACY_OUT ?= accuracy-out
+JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest clean
+.PHONY: demo test lint typecheck pytest accuracy clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +32,10 @@ typecheck: $(STAMP)
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q
+
+# The accuracy matrix: simulated surveys replayed in every mode (hours; not in `make test`).
+accuracy: $(STAMP)
+	$(BIN)/python -m tools.accuracy --out $(ACCURACY_OUT) --jobs $(JOBS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT)

@@ -10,13 +10,14 @@ through the sonar's lever arm and mount yaw (``SonarMount``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration, RelativePose
-from mapping.polar import FanGeometry
+from mapping.polar import Attitude, FanGeometry
 from mapping.posegraph import Edge
 from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame
 from mapping.samples import Ping
@@ -119,6 +120,8 @@ class LocalRegistration:
     preprocess: PreprocessParams = field(default_factory=PreprocessParams)
     fmt: FmtParams = field(default_factory=FmtParams)
     params: RegistrationParams = field(default_factory=RegistrationParams)
+    attitude: Callable[[float], Attitude | None] | None = None
+    """The boat's roll and pitch at a ping's stamp (None: project every ping level)."""
 
     def __post_init__(self) -> None:
         self.preprocessor: Preprocessor | None = None
@@ -135,6 +138,8 @@ class LocalRegistration:
             ping.range_resolution_m,
             self.mount.altitude_m,
             self.mount.tilt_rad,
+            lever_arm_m=(self.mount.forward_m, self.mount.starboard_m, self.mount.down_m),
+            mount_yaw_rad=self.mount.yaw_rad,
         )
         if self.preprocessor is None or fan != self._fan:
             reference = self.preprocessor.reference_cdf if self.preprocessor else None
@@ -149,7 +154,8 @@ class LocalRegistration:
             self._fine = None
             self._fan = fan
             self._last = None  # a new geometry cannot be registered against the old
-        return self.preprocessor(ping.image)
+        attitude = self.attitude(ping.time) if self.attitude is not None else None
+        return self.preprocessor(ping.image, attitude)
 
     @property
     def fine_registrar(self) -> FmtRegistrar:

@@ -1,31 +1,30 @@
-"""Loop closures between overlapping frames of different lanes.
+"""Loop-closure candidates between overlapping frames of different lanes, registered.
 
 The paper chains consecutive registrations only, so the relative placement of two lanes
-rests on the GPS, whose bias wanders by decimetres between passes: a quadrat seen from two
+rests on the GPS, whose bias wanders by a metre between passes: a quadrat seen from two
 lanes is drawn twice. Registering frames of adjacent lanes that see the same seabed (often
-from opposite headings) and adding them as local residuals, validated like the consecutive
-ones, ties the lanes together: the paper's natural next step, and standard pose-graph
-practice (e.g. Hurtós et al. 2015, doi:10.1002/rob.21516).
+from opposite headings) ties the lanes together: the paper's natural next step, and
+standard pose-graph practice (e.g. Hurtós et al. 2015, doi:10.1002/rob.21516).
 
 Candidates come from the current pose estimate: frames at least ``min_gap_s`` apart whose
-footprint centres lie within ``max_distance_m``. Each is registered with the prior from
-that estimate (``FmtRegistrar.register_far``); a closure is kept when its similarity is
-high enough and, after re-solving, its residual is small (the re-solve is repeated after
-dropping outliers, so one bad closure cannot bend the map).
+fans share enough lit seabed. Each is registered with the prior from that estimate
+(``FmtRegistrar.register_far``), keeping several distinct peaks; which of them, if any,
+becomes a closure is ``mapping.closures``'s choice.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from mapping.closures import ClosureHypothesis
+from mapping.fmt import FmtRegistrar, PreparedFrame, Registration, RelativePose
 from mapping.frames import LocalRegistration, SonarMount, relative_pose
-from mapping.posegraph import Edge, OptimiserParams, optimise
 from mapping.samples import Ping
 
 Array = npt.NDArray[np.float64]
@@ -42,17 +41,16 @@ class LoopParams:
     """At most one closure per this many frames of each pass over a place."""
     search_m: float = 1.0
     """Translation searched around the prior (the GPS's relative error between lanes)."""
-    tau_a_deg: float = 6.0
-    """Largest yaw disagreement with the prior."""
     min_score: float = 0.08
-    max_residual_m: float = 0.12
-    """Closures whose residual after the solve exceeds this are dropped as outliers."""
-    weight: float = 0.1
-    """Multiplier of lambda for closure residuals. Two frames of different lanes see the
-    seabed from different sides (often opposite): shadows and the bright faces of ripples
-    and bars move with the look direction, so such a registration is an order of
-    magnitude less precise than one between consecutive frames (centimetres against
-    millimetres); it still pins the lanes to each other far better than the GPS does."""
+    hypotheses: int = 4
+    """Distinct correlation peaks kept per candidate pair (periodic seabeds)."""
+    sigma_m: float = 0.03
+    """Closure sigma per axis when the registrar gives no covariance: registrations
+    between lanes see the seabed from other sides and are centimetres, not millimetres."""
+    sigma_deg: float = 0.3
+    sigma_floor_m: float = 0.01
+    """Added to the registrar's own covariance (view-dependent shading)."""
+    sigma_floor_deg: float = 0.1
 
 
 @dataclass
@@ -60,8 +58,6 @@ class LoopReport:
     candidates: int = 0
     registered: int = 0
     rejected_score: int = 0
-    rejected_rotation: int = 0
-    rejected_outlier: int = 0
     kept: int = 0
 
 
@@ -151,15 +147,17 @@ def find_candidates(
     return thinned
 
 
-def register_candidates(
+def register_hypotheses(
     pings: Iterable[Ping],
     pairs: Sequence[tuple[int, int]],
     poses: Array,
     local: LocalRegistration,
     params: LoopParams,
     report: LoopReport,
-) -> list[Edge]:
-    """One pass over the pings: keep each earlier frame of a pair until its partner comes."""
+) -> list[tuple[int, int, list[ClosureHypothesis]]]:
+    """Register every candidate pair in one pass over the pings, keeping up to
+    ``hypotheses`` distinct peaks per pair whose similarity passes ``min_score``: pose of
+    j in i in the vehicle frame, with a covariance (the registrar's, when it gives one)."""
     if not pairs:
         return []
     mount = local.mount
@@ -172,7 +170,7 @@ def register_candidates(
         last_use[i] = max(last_use.get(i, -1), j)
     held: dict[int, npt.NDArray[np.float32]] = {}
     sonar = mount.sonar_pose(poses)
-    edges: list[Edge] = []
+    out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for index, ping in enumerate(pings):
         if index not in wanted and index not in partners:
             continue
@@ -186,79 +184,55 @@ def register_candidates(
                 continue
             report.candidates += 1
             prior = relative_pose(sonar[i], sonar[index])
-            reg = registrar.register_far(registrar.prepare(earlier), image, prior, params.search_m)
+            reg = _register_far(registrar, registrar.prepare(earlier), image, prior, params)
             report.registered += 1
-            yaw_off = math.degrees(
-                (reg.relative.yaw_rad - prior.yaw_rad + math.pi) % (2 * math.pi) - math.pi
-            )
-            if reg.score < params.min_score:
+            found: list[ClosureHypothesis] = []
+            for rel, cov, score in _hypotheses_of(reg):
+                if score < params.min_score:
+                    continue
+                vehicle = mount.vehicle_relative(rel)
+                found.append(ClosureHypothesis(vehicle, _vehicle_cov(cov, params), score))
+            if not found:
                 report.rejected_score += 1
                 continue
-            if abs(yaw_off) > params.tau_a_deg:
-                report.rejected_rotation += 1
-                continue
-            vehicle = mount.vehicle_relative(reg.relative)
-            edges.append(
-                Edge(
-                    i, index, vehicle.forward_m, vehicle.starboard_m, vehicle.yaw_rad, params.weight
-                )
-            )
+            out.append((i, index, found))
         for i in [k for k in held if last_use.get(k, -1) <= index]:
             del held[i]
-    return edges
+    return out
 
 
-def solve_with_closures(
-    solve: Callable[[Sequence[Edge]], Array],
-    closures: Sequence[Edge],
+def _register_far(
+    registrar: FmtRegistrar,
+    earlier: PreparedFrame,
+    later: npt.NDArray[np.float32],
+    prior: RelativePose,
     params: LoopParams,
-    report: LoopReport,
-) -> tuple[Array, list[Edge]]:
-    """Re-solve with the closures, dropping those that disagree with the solution (the
-    worst first, a few at a time) until all fit within ``max_residual_m``."""
-    kept = list(closures)
-    poses = solve(kept)
-    for _ in range(10):
-        if not kept:
-            break
-        residuals = np.array([_residual(poses, e) for e in kept])
-        bad = residuals > params.max_residual_m
-        if not bad.any():
-            break
-        # Drop the worst half of the offenders: an outlier drags its neighbours' residuals
-        # up too, and they come back clean once it is gone.
-        order = np.argsort(-residuals)
-        drop = set(order[: max(1, int(bad.sum() + 1) // 2)].tolist())
-        report.rejected_outlier += len(drop)
-        kept = [e for k, e in enumerate(kept) if k not in drop]
-        poses = solve(kept)
-    report.kept = len(kept)
-    return poses, kept
+) -> Registration:
+    try:
+        return registrar.register_far(
+            earlier, later, prior, params.search_m, n_hypotheses=params.hypotheses
+        )  # type: ignore[call-arg,unused-ignore]
+    except TypeError:
+        return registrar.register_far(earlier, later, prior, params.search_m)
 
 
-def _residual(poses: Array, edge: Edge) -> float:
-    rel = relative_pose(poses[edge.i], poses[edge.j])
-    return math.hypot(rel.forward_m - edge.forward_m, rel.starboard_m - edge.starboard_m)
+def _hypotheses_of(reg: Registration) -> list[tuple[RelativePose, Array | None, float]]:
+    """(relative pose, covariance or None, score) of each peak, best first."""
+    extra = getattr(reg, "hypotheses", ()) or ()
+    if extra:
+        return [(h.relative, getattr(h, "covariance", None), float(h.score)) for h in extra]
+    return [(reg.relative, getattr(reg, "covariance", None), float(reg.score))]
 
 
-def optimise_with_closures(
-    priors: Array,
-    mapped: npt.NDArray[np.bool_],
-    edges: Sequence[Edge],
-    closures: Sequence[Edge],
-    params: OptimiserParams,
-    prior_weights: Array | None = None,
-) -> Array:
-    """The single-stage optimisation over mapped frames with extra closure edges."""
-    index = np.flatnonzero(mapped)
-    position = {int(k): i for i, k in enumerate(index)}
-    local = [
-        Edge(position[e.i], position[e.j], e.forward_m, e.starboard_m, e.yaw_rad, e.weight)
-        for e in list(edges) + list(closures)
-        if e.i in position and e.j in position
-    ]
-    weights = None if prior_weights is None else prior_weights[index]
-    solution = optimise(priors[index], priors[index], local, params, weights)
-    poses = np.full_like(priors, np.nan)
-    poses[index] = solution.poses
-    return poses
+def _vehicle_cov(cov: Array | None, params: LoopParams) -> Array:
+    """A closure's covariance: the registrar's (with a floor) or the default sigmas."""
+    floor = np.diag(
+        [
+            params.sigma_floor_m**2,
+            params.sigma_floor_m**2,
+            math.radians(params.sigma_floor_deg) ** 2,
+        ]
+    )
+    if cov is None:
+        return np.diag([params.sigma_m**2, params.sigma_m**2, math.radians(params.sigma_deg) ** 2])
+    return np.asarray(cov, float) + floor

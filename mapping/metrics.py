@@ -108,7 +108,8 @@ def absolute_trajectory_error(estimate: Array, truth: Array) -> dict[str, float]
 @dataclass(frozen=True, slots=True)
 class Quadrat:
     """A square frame on the seabed: centre (UTM metres), side (metres, between the bar
-    centre lines), orientation of one side (radians clockwise from grid north)."""
+    centre lines), orientation of one side (radians clockwise from grid north), and the
+    array (rigid layout) it belongs to."""
 
     east: float
     north: float
@@ -116,6 +117,11 @@ class Quadrat:
     row: int
     index: int
     orientation_rad: float = 0.0
+    array: int = 0
+
+
+Found = tuple[float, float, float] | None
+"""A located quadrat: (east, north UTM metres, match score), or None."""
 
 
 def _frame_template(side_px: float, bar_px: float, angle_rad: float) -> npt.NDArray[np.float32]:
@@ -143,6 +149,12 @@ def _filled(mosaic: Array, covered: Mask) -> npt.NDArray[np.float32]:
 def _peak(response: npt.NDArray[np.float32]) -> tuple[float, float, float]:
     """Sub-pixel (x, y) of the maximum of a match response, and its value."""
     _, score, _, (px, py) = cv2.minMaxLoc(response)
+    x, y = _refine(response, px, py)
+    return x, y, float(score)
+
+
+def _refine(response: npt.NDArray[np.float32], px: int, py: int) -> tuple[float, float]:
+    """Sub-pixel position of the response's local maximum at integer (px, py)."""
 
     def refine(line: Array, k: int) -> float:
         if 0 < k < line.size - 1:
@@ -151,15 +163,72 @@ def _peak(response: npt.NDArray[np.float32]) -> tuple[float, float, float]:
                 return float(k + 0.5 * (line[k - 1] - line[k + 1]) / den)
         return float(k)
 
-    return (
-        refine(response[py, :].astype(float), px),
-        refine(response[:, px].astype(float), py),
-        float(score),
-    )
+    return refine(response[py, :].astype(float), px), refine(response[:, px].astype(float), py)
+
+
+def _window(
+    image: npt.NDArray[np.float32], x0: int, y0: int, x1: int, y1: int, fill: float
+) -> npt.NDArray[np.float32]:
+    """image[y0:y1, x0:x1], ``fill`` where it reaches outside the image."""
+    out = np.full((y1 - y0, x1 - x0), fill, np.float32)
+    sx0, sy0 = max(x0, 0), max(y0, 0)
+    sx1, sy1 = min(x1, image.shape[1]), min(y1, image.shape[0])
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = image[sy0:sy1, sx0:sx1]
+    return out
+
+
+def layout_votes(
+    image: npt.NDArray[np.float32],
+    covered: Mask,
+    west: float,
+    north: float,
+    res_m: float,
+    quadrats: Sequence[Quadrat],
+    search_m: float,
+    bar_m: float,
+    slack_m: float = 0.12,
+) -> Array:
+    """How well the rigid layout of ``quadrats`` fits the mosaic at every offset from the
+    truth within ``search_m`` (a (2p+1, 2p+1) map, p = search_m / res_m; centre = no
+    offset, x east, y south), as votes of its frames.
+
+    Each frame's outline is matched on its own (normalised correlation, local, so the
+    texture between the frames weighs nothing: ripples whose crests line up with the
+    sides of a whole periodic layout would otherwise outvote the frames), loosened by
+    ``slack_m`` (a mosaic is not rigid), and votes ``score - threshold`` where its window
+    is covered (at least half of it) and nothing where the mosaic has no data. The
+    threshold lies midway between the frame's typical score over the search (bare
+    seabed) and its best (a frame): bare seabed votes against a placement, a frame for
+    it, no data neither. So the layout one frame (1 m) off, which still fits six of
+    eight frames, loses on the two it puts on bare seabed, and a placement that puts
+    frames only where the mosaic stops does not."""
+    pad = round(search_m / res_m)
+    votes = np.zeros((2 * pad + 1, 2 * pad + 1))
+    radius = max(round(slack_m / res_m), 0)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    coverage = covered.astype(np.float32)
+    for q in quadrats:
+        template = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
+        th, tw = template.shape
+        x0 = round((q.east - west) / res_m - 0.5) - tw // 2 - pad
+        y0 = round((north - q.north) / res_m - 0.5) - th // 2 - pad
+        x1, y1 = x0 + tw + 2 * pad, y0 + th + 2 * pad
+        window = _window(image, x0, y0, x1, y1, float(image.mean()) if image.size else 0.0)
+        score = np.nan_to_num(cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED))
+        seen = cv2.boxFilter(_window(coverage, x0, y0, x1, y1, 0.0), -1, (tw, th))
+        seen = seen[th // 2 : th // 2 + 2 * pad + 1, tw // 2 : tw // 2 + 2 * pad + 1] >= 0.5
+        if not seen.any():
+            continue
+        score = cv2.dilate(score, kernel)
+        typical, best = float(np.median(score[seen])), float(score[seen].max())
+        votes += np.where(seen, score - (typical + best) / 2.0, 0.0)
+    return votes
 
 
 def layout_offset(
     image: npt.NDArray[np.float32],
+    covered: Mask,
     west: float,
     north: float,
     res_m: float,
@@ -167,38 +236,18 @@ def layout_offset(
     search_m: float,
     bar_m: float,
 ) -> tuple[float, float] | None:
-    """Where the whole quadrat layout lies in the mosaic relative to the truth (east,
-    north metres): the rigid pattern of all frames matched at once, which cannot confuse
-    one frame with its neighbour however far the georeferencing is off."""
-    margin = 0.5
-    e0 = min(q.east for q in quadrats) - margin - max(q.side_m for q in quadrats)
-    n1 = max(q.north for q in quadrats) + margin + max(q.side_m for q in quadrats)
-    e1 = max(q.east for q in quadrats) + margin + max(q.side_m for q in quadrats)
-    n0 = min(q.north for q in quadrats) - margin - max(q.side_m for q in quadrats)
-    width, height = round((e1 - e0) / res_m), round((n1 - n0) / res_m)
-    pattern = np.zeros((height, width), np.float32)
-    for q in quadrats:
-        t = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
-        t = t - t.min()
-        x = round((q.east - e0) / res_m) - t.shape[1] // 2
-        y = round((n1 - q.north) / res_m) - t.shape[0] // 2
-        xs, ys = (
-            slice(max(x, 0), min(x + t.shape[1], width)),
-            slice(max(y, 0), min(y + t.shape[0], height)),
-        )
-        pattern[ys, xs] = np.maximum(
-            pattern[ys, xs], t[ys.start - y : ys.stop - y, xs.start - x : xs.stop - x]
-        )
-    pattern -= pattern.mean()
-    pad = round(search_m / res_m)
-    x0 = round((e0 - west) / res_m) - pad
-    y0 = round((north - n1) / res_m) - pad
-    x1, y1 = x0 + width + 2 * pad, y0 + height + 2 * pad
-    if x0 < 0 or y0 < 0 or x1 > image.shape[1] or y1 > image.shape[0]:
+    """Where the whole layout lies in the mosaic relative to the truth (east, north
+    metres; the best of ``layout_votes``), or None if the mosaic shows it nowhere."""
+    votes = layout_votes(image, covered, west, north, res_m, quadrats, search_m, bar_m)
+    if not np.any(votes > 0):
         return None
-    response = cv2.matchTemplate(image[y0:y1, x0:x1], pattern, cv2.TM_CCOEFF_NORMED)
-    px, py, _ = _peak(response)
-    return ((px - pad) * res_m, -(py - pad) * res_m)
+    pad = (votes.shape[0] - 1) // 2
+    # The slack makes the top flat: take the middle of the best votes' plateau.
+    top = votes >= votes.max() - 1e-9
+    _, labels = cv2.connectedComponents(top.astype(np.uint8))
+    py, px = np.unravel_index(int(np.argmax(votes)), votes.shape)
+    ys, xs = np.nonzero(labels == labels[py, px])
+    return ((float(np.mean(xs)) - pad) * res_m, -(float(np.mean(ys)) - pad) * res_m)
 
 
 def locate_quadrats(
@@ -208,31 +257,31 @@ def locate_quadrats(
     north: float,
     res_m: float,
     quadrats: Sequence[Quadrat],
-    layout_search_m: float = 2.0,
+    layout_search_m: float = 4.0,
     search_m: float = 0.3,
     bar_m: float = 0.04,
-) -> list[tuple[float, float, float] | None]:
-    """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north): first
-    the whole layout within ``layout_search_m`` of the truth (the georeferencing error),
-    then each frame by normalised template matching of a square outline of its side and
-    orientation within ``search_m`` of there (less than half the 1 m spacing, so a match
-    cannot jump to a neighbour). A GPS bias of several sigma can put the layout beyond
-    the search: the search is also made twice as wide, and the placement whose frames
-    agree best on the layout's offset (a false placement scatters them) is kept.
-    Returns (east, north, match score) or None per quadrat."""
+) -> list[Found]:
+    """Find each quadrat in a north-up mosaic (top-left corner at UTM west/north), one
+    array (``Quadrat.array``) at a time: first where the array lies as a rigid layout
+    within ``layout_search_m`` of the truth (``layout_offset``, by the votes of its frames
+    so that a placement one period off loses; the georeferencing error: a GNSS can be
+    2-3 m off, and each array is placed on its own, as the error wanders between them),
+    then each frame by normalised template matching of a square outline
+    of its side and orientation within ``search_m`` of there (less than half the 1 m
+    spacing, so a match cannot jump to a neighbour). Returns (east, north, match score)
+    or None per quadrat, in the order given."""
     image = _filled(mosaic, covered)
-    best: list[tuple[float, float, float] | None] = [None] * len(quadrats)
-    best_spread = math.inf
-    for search in (layout_search_m, 2 * layout_search_m):
-        offset = layout_offset(image, west, north, res_m, quadrats, search, bar_m) or (0.0, 0.0)
-        found = _locate_each(image, covered, west, north, res_m, quadrats, offset, search_m, bar_m)
-        shifts = np.array(
-            [(f[0] - q.east, f[1] - q.north) for q, f in zip(quadrats, found, strict=True) if f]
+    found: list[Found] = [None] * len(quadrats)
+    for array in sorted({q.array for q in quadrats}):
+        members = [k for k, q in enumerate(quadrats) if q.array == array]
+        group = [quadrats[k] for k in members]
+        offset = layout_offset(image, covered, west, north, res_m, group, layout_search_m, bar_m)
+        placed = _locate_each(
+            image, covered, west, north, res_m, group, offset or (0.0, 0.0), search_m, bar_m
         )
-        spread = float(np.linalg.norm(shifts.std(axis=0))) if len(shifts) >= 2 else math.inf
-        if spread < best_spread:
-            best, best_spread = found, spread
-    return best
+        for k, f in zip(members, placed, strict=True):
+            found[k] = f
+    return found
 
 
 def _locate_each(
@@ -245,8 +294,10 @@ def _locate_each(
     offset: tuple[float, float],
     search_m: float,
     bar_m: float,
-) -> list[tuple[float, float, float] | None]:
-    found: list[tuple[float, float, float] | None] = []
+) -> list[Found]:
+    """Each frame matched within ``search_m`` of its true place moved by ``offset``
+    (east, north metres); None where the mosaic covers less than half the search."""
+    found: list[Found] = []
     for q in quadrats:
         template = _frame_template(q.side_m / res_m, max(bar_m / res_m, 2.0), q.orientation_rad)
         half = template.shape[0] // 2 + round(search_m / res_m)
@@ -268,32 +319,80 @@ def _locate_each(
     return found
 
 
-def quadrat_spacing_error(
-    quadrats: Sequence[Quadrat], found: Sequence[tuple[float, float, float] | None]
-) -> dict[str, float]:
-    """MAE / RMSE (metres) of the distances between every pair of located quadrats
-    against the true distances (the paper's Table III), and how many were located."""
-    errors = []
-    for a in range(len(quadrats)):
-        for b in range(a + 1, len(quadrats)):
-            fa, fb = found[a], found[b]
-            if fa is None or fb is None:
-                continue
-            true = math.hypot(
-                quadrats[a].east - quadrats[b].east, quadrats[a].north - quadrats[b].north
-            )
-            got = math.hypot(fa[0] - fb[0], fa[1] - fb[1])
-            errors.append(got - true)
-    located = sum(f is not None for f in found)
-    if not errors:
-        return {"mae": math.nan, "rmse": math.nan, "located": float(located), "pairs": 0.0}
-    err = np.abs(np.array(errors))
+def _spacing_stats(errors: Array, prefix: str = "") -> dict[str, float]:
+    if errors.size == 0:
+        return {f"{prefix}mae": math.nan, f"{prefix}rmse": math.nan, f"{prefix}pairs": 0.0}
+    err = np.abs(errors)
     return {
-        "mae": float(err.mean()),
-        "rmse": float(math.sqrt(float(np.mean(err**2)))),
-        "located": float(located),
-        "pairs": float(err.size),
+        f"{prefix}mae": float(err.mean()),
+        f"{prefix}rmse": float(math.sqrt(float(np.mean(err**2)))),
+        f"{prefix}pairs": float(err.size),
     }
+
+
+def _pair_errors(
+    quadrats: Sequence[Quadrat], found: Sequence[Found]
+) -> tuple[Array, npt.NDArray[np.bool_], npt.NDArray[np.int64]]:
+    """For every pair of located quadrats: the error of their distance (metres, located
+    minus true), whether both are in the same array, and the first one's array."""
+    located = np.array([f is not None for f in found], bool)
+    true = np.array([(q.east, q.north) for q in quadrats], float).reshape(-1, 2)
+    got = np.array([(f[0], f[1]) if f is not None else (np.nan, np.nan) for f in found])
+    array = np.array([q.array for q in quadrats], np.int64)
+    a, b = np.triu_indices(len(quadrats), 1)
+    both = located[a] & located[b]
+    a, b = a[both], b[both]
+    error = np.linalg.norm(got[a] - got[b], axis=1) - np.linalg.norm(true[a] - true[b], axis=1)
+    return error, array[a] == array[b], array[a]
+
+
+def quadrat_spacing_error(quadrats: Sequence[Quadrat], found: Sequence[Found]) -> dict[str, float]:
+    """MAE / RMSE (metres) of the distances between located quadrats against the true
+    distances (the paper's Table III), over the pairs within one array (``mae``,
+    ``rmse``, ``pairs``: blind to where each array sits) and over all pairs (``all_*``:
+    the same with one array); and how many were located."""
+    located = float(sum(f is not None for f in found))
+    if len(quadrats) < 2:
+        within = all_pairs = np.zeros(0)
+    else:
+        error, same, _ = _pair_errors(quadrats, found)
+        within, all_pairs = error[same], error
+    return {
+        **_spacing_stats(within),
+        **_spacing_stats(all_pairs, "all_"),
+        "located": located,
+    }
+
+
+def array_offsets(quadrats: Sequence[Quadrat], found: Sequence[Found]) -> list[dict[str, float]]:
+    """Per array: where its located frames lie relative to the truth on average (east,
+    north, norm: metres; the absolute georeferencing error there), how many were located,
+    and the spacing error of its pairs."""
+    out = []
+    for array in sorted({q.array for q in quadrats}):
+        members = [k for k, q in enumerate(quadrats) if q.array == array]
+        group = [quadrats[k] for k in members]
+        placed = [found[k] for k in members]
+        shifts = np.array(
+            [(f[0] - q.east, f[1] - q.north) for q, f in zip(group, placed, strict=True) if f]
+        ).reshape(-1, 2)
+        mean = shifts.mean(axis=0) if len(shifts) else np.full(2, np.nan)
+        spacing = _spacing_stats(_pair_errors(group, placed)[0] if len(group) > 1 else np.zeros(0))
+        out.append(
+            {
+                "array": float(array),
+                "located": float(len(shifts)),
+                "quadrats": float(len(group)),
+                "offset_east_m": float(mean[0]),
+                "offset_north_m": float(mean[1]),
+                "offset_m": float(np.hypot(mean[0], mean[1])),
+                "offset_spread_m": float(np.linalg.norm(shifts.std(axis=0)))
+                if len(shifts) >= 2
+                else math.nan,
+                **spacing,
+            }
+        )
+    return out
 
 
 def displacement_field(

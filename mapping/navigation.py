@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from mapping.ekf import PSI, STATE_SIZE, EkfParams, ImuInput, NavFilter, level_imu
 from mapping.geo import LocalFrame, wrap_pi
+from mapping.polar import Attitude
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample
 
 Array = npt.NDArray[np.float64]
@@ -284,3 +285,31 @@ def _rts(
         xs[k, PSI] %= 2 * math.pi
         ps[k] = filt_p[k] + gain @ (ps[k + 1] - p_pred) @ gain.T
     return xs, ps
+
+
+class AttitudeTrack:
+    """Roll and pitch at any time, interpolated from the autopilot's attitude reports.
+
+    ``at(stamp)`` gives the attitude ``latency_s`` before a ping's stamp (when the ping
+    was taken), or None where no report lies within ``max_gap_s`` (the ping is then
+    projected level).
+    """
+
+    def __init__(
+        self, attitude: Sequence[AttitudeSample], latency_s: float = 0.0, max_gap_s: float = 0.5
+    ) -> None:
+        lookup = _attitude_lookup(attitude)
+        self.latency_s = latency_s
+        self.max_gap_s = max_gap_s
+        self._lookup = lookup
+
+    def at(self, stamp: float) -> Attitude | None:
+        if self._lookup is None:
+            return None
+        times, rolls, pitches = self._lookup
+        t = stamp - self.latency_s
+        k = int(np.searchsorted(times, t))
+        near = min(abs(times[min(k, times.size - 1)] - t), abs(times[max(k - 1, 0)] - t))
+        if near > self.max_gap_s:
+            return None
+        return Attitude(float(np.interp(t, times, rolls)), float(np.interp(t, times, pitches)))

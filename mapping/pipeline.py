@@ -14,12 +14,12 @@ bounded by the mosaic, not the survey.
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -39,16 +39,14 @@ from mapping.geo import LocalFrame
 from mapping.loops import (
     LoopParams,
     LoopReport,
-    find_candidates,
-    optimise_with_closures,
-    register_candidates,
-    solve_with_closures,
 )
 from mapping.mosaic import SonarPose, TileGrid
-from mapping.navigation import estimate_at, prepare_inputs
-from mapping.posegraph import Edge, OptimiserParams, optimise
+from mapping.navigation import AttitudeTrack, estimate_at, prepare_inputs
+from mapping.polar import Attitude
+from mapping.posegraph import Edge, OptimiserParams
 from mapping.preprocess import PreprocessParams
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+from mapping.single_stage import SingleStageParams, single_stage
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -81,8 +79,11 @@ class PipelineParams:
     tile_px: int = 256
     smooth_nav: bool = True
     subset_frames: int = 60
-    loops: LoopParams = field(default_factory=LoopParams)
     """two-stage: frames per subset (consecutive subsets overlap by half)."""
+    loops: LoopParams = field(default_factory=LoopParams)
+    single_stage: SingleStageParams = field(default_factory=SingleStageParams)
+    project_attitude: bool = True
+    """Project each ping at the boat's roll and pitch when it was taken (else level)."""
 
 
 @dataclass
@@ -104,6 +105,9 @@ class SurveyResult:
     mount: SonarMount
     closures: list[Edge] = field(default_factory=list)
     loops: LoopReport = field(default_factory=LoopReport)
+    fusion: dict[str, Any] = field(default_factory=dict)
+    """Single-stage: what the fusion estimated (gyro bias, compass error, GNSS offset)
+    and how well each kind of measurement fits."""
 
     @property
     def frames_read(self) -> int:
@@ -144,120 +148,16 @@ def _chain(n: int, accepted: npt.NDArray[np.bool_], edges: Sequence[Edge], prior
     return poses
 
 
-def _two_stage(
-    accepted: npt.NDArray[np.bool_],
-    edges: Sequence[Edge],
-    closures: Sequence[Edge],
-    priors: Array,
-    prior_weights: Array,
-    params: PipelineParams,
-) -> Array:
-    """Stage 1: subsets of ``subset_frames`` accepted frames, consecutive subsets sharing
-    half their frames, each chained from its first frame (the baseline) into a rigid
-    submap. Stage 2: the submap poses optimised with the paper's objective: a global prior
-    per submap (the rigid fit of its frames to their EKF priors, weighted by their number)
-    and a local edge between consecutive submaps from the frames they share."""
-    index = np.flatnonzero(accepted)
-    if index.size == 0:
-        return np.full_like(priors, np.nan)
-    size = max(params.subset_frames, 4)
-    stride = size // 2
-    subsets = [index[s : s + size] for s in range(0, max(index.size - stride, 1), stride)]
-    chained = _chain(len(priors), accepted, edges, priors)
-    offsets = [
-        np.array([_relative_array(chained[sub[0]], chained[k]) for k in sub]) for sub in subsets
-    ]
-    submap_priors = np.array(
-        [_fit_rigid(offs, priors[sub]) for sub, offs in zip(subsets, offsets, strict=True)]
-    )
-    submap_edges: list[Edge] = []
-    for s in range(len(subsets) - 1):
-        shared = np.intersect1d(subsets[s], subsets[s + 1])
-        if shared.size == 0:
-            continue
-        k = int(shared[shared.size // 2])
-        in_a = _as_relative(offsets[s][int(np.flatnonzero(subsets[s] == k)[0])])
-        in_b = _as_relative(offsets[s + 1][int(np.flatnonzero(subsets[s + 1] == k)[0])])
-        # Submap s+1 in submap s: frame k in s, then back from k to the anchor of s+1.
-        between = RelativePose.from_matrix(in_a.matrix() @ np.linalg.inv(in_b.matrix()))
-        submap_edges.append(
-            Edge(s, s + 1, between.forward_m, between.starboard_m, between.yaw_rad, shared.size)
-        )
-    # A loop closure between frames of two submaps ties the submaps the same way.
-    home = {}
-    for s in range(len(subsets) - 1, -1, -1):
-        for position, k in enumerate(subsets[s]):
-            home[int(k)] = (s, position)
-    for closure in closures:
-        if closure.i not in home or closure.j not in home:
-            continue
-        (sa, pa), (sb, pb) = home[closure.i], home[closure.j]
-        if sa == sb:
-            continue
-        link = RelativePose(closure.forward_m, closure.starboard_m, closure.yaw_rad)
-        between = RelativePose.from_matrix(
-            _as_relative(offsets[sa][pa]).matrix()
-            @ link.matrix()
-            @ np.linalg.inv(_as_relative(offsets[sb][pb]).matrix())
-        )
-        submap_edges.append(
-            Edge(sa, sb, between.forward_m, between.starboard_m, between.yaw_rad, closure.weight)
-        )
-    weights = np.array([prior_weights[sub].sum(axis=0) for sub in subsets], float)
-    solution = optimise(submap_priors, submap_priors, submap_edges, params.optimiser, weights)
-    poses = np.full_like(priors, np.nan)
-    for s in range(len(subsets) - 1, -1, -1):
-        # Earlier submaps win where subsets overlap (written last).
-        for k, off in zip(subsets[s], offsets[s], strict=True):
-            poses[k] = _compose_array(solution.poses[s], off)
-    return poses
-
-
-def _relative_array(a: Array, b: Array) -> Array:
-    r = relative_pose(a, b)
-    return np.array([r.forward_m, r.starboard_m, r.yaw_rad])
-
-
-def _compose_array(a: Array, rel: Array) -> Array:
-    return compose(a, RelativePose(float(rel[0]), float(rel[1]), float(rel[2])))
-
-
-def _as_relative(rel: Array) -> RelativePose:
-    return RelativePose(float(rel[0]), float(rel[1]), float(rel[2]))
-
-
-def _fit_rigid(offsets: Array, targets: Array) -> Array:
-    """Submap pose (its first frame's) whose frames at ``offsets`` best fit ``targets``
-    (least squares on positions: 2-D Procrustes; Umeyama 1991, doi:10.1109/34.88573)."""
-    src = np.array([_compose_array(np.zeros(3), o)[:2] for o in offsets])
-    dst = targets[:, :2]
-    src_c, dst_c = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - src_c, dst - dst_c
-    # Counter-clockwise rotation (east-north axes) taking a onto b.
-    theta = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
-    c, s = math.cos(theta), math.sin(theta)
-    anchor_xy = np.array([[c, -s], [s, c]]) @ (-src_c) + dst_c
-    # A counter-clockwise turn of the east-north axes lowers a clockwise heading.
-    return np.array([anchor_xy[0], anchor_xy[1], (-theta) % (2 * math.pi)])
-
-
 def _place_frames(
     mode: Mode,
     accepted: npt.NDArray[np.bool_],
     edges: Sequence[Edge],
-    closures: Sequence[Edge],
     priors: Array,
-    weights: Array,
-    params: PipelineParams,
 ) -> Array:
-    """Vehicle poses of the accepted frames by ``mode`` (NaN for the others)."""
+    """Vehicle poses of the accepted frames by a baseline ``mode`` (NaN for the others)."""
     if mode is Mode.GPS_ONLY:
         return np.where(accepted[:, None], priors, np.nan)
-    if mode is Mode.FMT_ONLY:
-        return _chain(len(priors), accepted, edges, priors)
-    if mode is Mode.SINGLE_STAGE:
-        return optimise_with_closures(priors, accepted, edges, closures, params.optimiser, weights)
-    return _two_stage(accepted, edges, closures, priors, weights, params)
+    return _chain(len(priors), accepted, edges, priors)
 
 
 def blend_frames(
@@ -270,13 +170,17 @@ def blend_frames(
     clock: _Clock | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     spill: TileSpill | None = None,
+    attitude: Callable[[float], Attitude | None] | None = None,
 ) -> TileStore:
     """Warp every mapped frame to its pose and blend it into the tile mosaic (Algorithm 1,
-    lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates."""
+    lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates;
+    ``attitude`` the roll and pitch of each ping by its stamp."""
     clock = clock or _Clock()
     mosaic = TileStore(TileGrid(params.mosaic_res_m, params.tile_px), params.blend, spill)
     scorer = FeatureScorer(params.blend)
-    preprocessing = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+    preprocessing = LocalRegistration(
+        mount, params.preprocess, params.fmt, params.registration, attitude
+    )
     sonar_poses = mount.sonar_pose(poses)
     n = len(mapped)
     for index, ping in enumerate(pings):
@@ -334,11 +238,14 @@ def map_survey(
     n = times.size
     estimate = estimate_at(inputs, times, params.ekf, smooth=params.smooth_nav)
     priors = estimate.poses
-    weights = estimate.prior_weights()
     started = clock.add("ekf", started)
 
     outcomes: list[FrameOutcome] = list(registrations) if registrations is not None else []
-    registration = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+    track = AttitudeTrack(nav.attitude, params.single_stage.graph.sonar_latency_s)
+    attitude = track.at if params.project_attitude else None
+    registration = LocalRegistration(
+        mount, params.preprocess, params.fmt, params.registration, attitude
+    )
     for index, ping in enumerate(pings() if registrations is None else ()):
         if index >= n:
             break
@@ -361,32 +268,50 @@ def map_survey(
     rejected = Counter(o.reason for o in outcomes if not o.accepted)
 
     t0 = time.perf_counter()
-
-    def solve(closures: Sequence[Edge]) -> Array:
-        return _place_frames(mode, accepted, edges, closures, priors, weights, params)
-
-    poses = solve([])
-    clock.add("optimisation", t0)
     loop_report = LoopReport()
     closures: list[Edge] = []
+    fusion_summary: dict[str, Any] = {}
     uses_closures = mode in (Mode.SINGLE_STAGE, Mode.TWO_STAGE) and params.loops.enabled
-    if uses_closures and n > 0:
-        t0 = time.perf_counter()
-        closer = LocalRegistration(mount, params.preprocess, params.fmt, params.registration)
+
+    def closure_source(
+        current: Array,
+    ) -> tuple[Iterable[Ping], LocalRegistration, tuple[float, float], float]:
+        closer = LocalRegistration(
+            mount, params.preprocess, params.fmt, params.registration, attitude
+        )
         closer.frame(next(iter(pings())))  # the sonar's geometry
         preprocessor = closer.preprocessor
         assert preprocessor is not None
         lit = (preprocessor.min_range_m, preprocessor.fan.max_range_m)
         bearings = preprocessor.fan.bearings_rad
         half_fan = max(abs(bearings[0]), abs(bearings[-1]))
-        pairs = find_candidates(times, poses, accepted, mount, lit, half_fan, params.loops)
-        found = register_candidates(pings(), pairs, poses, closer, params.loops, loop_report)
-        t1 = clock.add("loop_closure", t0)
-        poses, closures = solve_with_closures(solve, found, params.loops, loop_report)
-        clock.add("optimisation", t1)
+        return pings(), closer, lit, half_fan
+
+    if mode in (Mode.SINGLE_STAGE, Mode.TWO_STAGE):
+        placed = single_stage(
+            times,
+            accepted,
+            edges,
+            outcomes,
+            priors,
+            inputs,
+            mount,
+            params.single_stage,
+            params.loops,
+            closure_source if uses_closures and n > 0 else None,
+            loop_report,
+            rigid_frames=params.subset_frames if mode is Mode.TWO_STAGE else None,
+        )
+        poses, closures = placed.poses, placed.closures
+        fusion_summary = {**placed.summary, "closures": asdict(placed.closure_report)}
+    else:
+        poses = _place_frames(mode, accepted, edges, priors)
+    clock.add("optimisation", t0)
     mapped = accepted & np.all(np.isfinite(poses), axis=1)
 
-    mosaic = blend_frames(pings(), poses, mapped, mount, frame, params, clock, progress, spill)
+    mosaic = blend_frames(
+        pings(), poses, mapped, mount, frame, params, clock, progress, spill, attitude
+    )
     return SurveyResult(
         frame=frame,
         mode=mode,
@@ -402,4 +327,5 @@ def map_survey(
         mount=mount,
         closures=closures,
         loops=loop_report,
+        fusion=fusion_summary,
     )

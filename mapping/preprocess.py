@@ -5,7 +5,8 @@
 2. Optional denoising: median (k = 5) or non-local means (h = 15, template 7, search 21).
 3. Histogram matching to a reference, then CLAHE (clip 1.5, 16 x 16 tiles).
 4. Optional Gaussian blur (k = 3, sigma from the kernel size).
-5. Polar to Cartesian with the real bearing table and slant-to-ground range
+5. Polar to Cartesian with the real bearing table and slant-to-ground range through the
+   cone beam model, each ping at its own roll, pitch and altitude when given
    (``mapping.polar``), a fan mask that also drops the unlit near field, and a
    Hamming-tapered edge weight (``mapping.fmt.hamming_taper``).
 
@@ -22,7 +23,14 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.fmt import SonarGrid, hamming_taper
-from mapping.polar import CartesianTables, FanGeometry, cartesian_tables, fan_grid, to_cartesian
+from mapping.polar import (
+    Attitude,
+    CartesianTables,
+    FanGeometry,
+    PingProjection,
+    fan_grid,
+    to_cartesian,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,7 +61,14 @@ class PreprocessParams:
 class SonarFrame:
     """A preprocessed Cartesian frame: ``image`` float32 in [0, 1], ``mask`` valid pixels,
     ``weight`` the Hamming-tapered edge weight (0 outside the mask), all on the blending
-    grid; ``coarse`` the same frame on the registration grid."""
+    grid; ``coarse`` the same frame on the registration grid (0 outside its fan).
+
+    The grids and the fixed fan mask (``Preprocessor.tables.mask``, the lit region on a
+    level boat) are the same for every ping; a ping projected at its own attitude lands a
+    few centimetres off that region, so ``mask`` varies per ping: it is the fixed mask
+    less the pixels this ping's tilted fan does not reach (those are 0 in ``image``,
+    ``weight`` and ``coarse``). What the ping covers beyond the fixed mask is not kept.
+    ``weight`` is the fixed mask's taper cut to ``mask``."""
 
     image: npt.NDArray[np.float32]
     mask: npt.NDArray[np.bool_]
@@ -102,7 +117,9 @@ class Preprocessor:
     """Preprocesses the frames of one sonar setting; tables are built once per geometry.
 
     tilt_deg: boresight tilt below horizontal. The histogram reference is the first
-    frame's equalised histogram unless ``reference_cdf`` is given.
+    frame's equalised histogram unless ``reference_cdf`` is given. Each ping may come
+    with its ``Attitude`` (roll, pitch, altitude); the projection then also needs the
+    fan's lever arm and mount yaw (``FanGeometry.of(..., lever_arm_m=, mount_yaw_rad=)``).
     """
 
     fan: FanGeometry
@@ -118,15 +135,21 @@ class Preprocessor:
         )
         if self.grid is None:
             self.grid = fan_grid(self.fan, p.res_m, self.min_range_m)
-        self.tables: CartesianTables = cartesian_tables(self.fan, self.grid, self.min_range_m)
+        self.projection = PingProjection(self.fan, self.grid, self.min_range_m)
+        self.tables: CartesianTables = self.projection.level
         self.weight = hamming_taper(self.tables.mask, p.taper_px)
         if p.registration_res_m == p.res_m:
-            self.registration_grid, self.registration_tables = self.grid, self.tables
+            self.registration_grid, self.registration_projection = self.grid, self.projection
         else:
             self.registration_grid = fan_grid(self.fan, p.registration_res_m, self.min_range_m)
-            self.registration_tables = cartesian_tables(
+            self.registration_projection = PingProjection(
                 self.fan, self.registration_grid, self.min_range_m
             )
+        self.registration_tables: CartesianTables = self.registration_projection.level
+        self._ping_weight: tuple[CartesianTables, npt.NDArray[np.float32]] = (
+            self.tables,
+            self.weight,
+        )
         first_lit = int(self.min_range_m / self.fan.range_resolution_m)
         self.first_lit_row = min(max(first_lit, 0), self.fan.n_ranges - 1)
         self._clahe = cv2.createCLAHE(
@@ -163,14 +186,27 @@ class Preprocessor:
         out[self.first_lit_row :] = lit8
         return out
 
-    def __call__(self, image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> SonarFrame:
-        """All steps: a polar ping image (n_ranges, n_beams) to a Cartesian SonarFrame."""
+    def __call__(
+        self,
+        image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
+        attitude: Attitude | None = None,
+    ) -> SonarFrame:
+        """All steps: a polar ping image (n_ranges, n_beams) to a Cartesian SonarFrame,
+        projected at the ping's ``attitude`` (None: level at the fan's altitude)."""
         polar = self.polar(image)
+        tables = self.projection.tables(attitude)
+        registration_tables = self.registration_projection.tables(attitude)
         scale = np.float32(1.0 / 255.0)
-        cart = to_cartesian(polar, self.tables) * scale
+        cart = to_cartesian(polar, tables) * scale
         coarse = (
             cart
-            if self.registration_tables is self.tables
-            else to_cartesian(polar, self.registration_tables) * scale
+            if registration_tables is tables
+            else to_cartesian(polar, registration_tables) * scale
         )
-        return SonarFrame(cart, self.tables.mask, self.weight, coarse)
+        return SonarFrame(cart, tables.mask, self._weight(tables), coarse)
+
+    def _weight(self, tables: CartesianTables) -> npt.NDArray[np.float32]:
+        if self._ping_weight[0] is not tables:
+            weight = np.where(tables.mask, self.weight, np.float32(0.0))
+            self._ping_weight = (tables, weight)
+        return self._ping_weight[1]

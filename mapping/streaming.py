@@ -21,7 +21,6 @@ registrations made live, and every tile re-rendered from the pings.
 
 from __future__ import annotations
 
-import bisect
 import heapq
 import itertools
 import math
@@ -35,13 +34,15 @@ import numpy.typing as npt
 
 from mapping.blend import FeatureScorer
 from mapping.ekf import PSI, ImuInput, NavFilter, level_imu
-from mapping.fmt import RelativePose, SonarGrid
-from mapping.frames import FrameOutcome, LocalRegistration, SonarMount, compose
+from mapping.fmt import SonarGrid
+from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.geo import LocalFrame
+from mapping.live_anchor import AnchorParams, LiveAnchor
 from mapping.mosaic import SonarPose, TileGrid, TileKey
 from mapping.navigation import position_sigma
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
-from mapping.posegraph import Edge, optimise
+from mapping.polar import Attitude
+from mapping.posegraph import Edge
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
 from mapping.tiles import TileImage, TileSpill, TileStore
 
@@ -79,6 +80,11 @@ class StreamingParams:
     work; the survey-end pass registers again at the pipeline's full resolution."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
+    anchor: AnchorParams = field(default_factory=AnchorParams)
+    """How the live chain is tied to the GNSS and the heading filter."""
+    gnss_time_offset_s: float = 0.1
+    """A fix shows the antenna this long before the frame stamps say (fix lag minus
+    sonar latency)."""
     reuse_registrations: bool = False
     """The survey-end pass reuses the live registrations instead of registering every
     frame again against the smoothed EKF. Faster (no FMT at the end), but the live ones
@@ -175,7 +181,14 @@ class StreamingEngine:
             live_preprocess = replace(
                 p.preprocess, registration_res_m=self.params.live_registration_res_m
             )
-        self.local = LocalRegistration(mount, live_preprocess, p.fmt, p.registration)
+        self._recent_attitude: deque[AttitudeSample] = deque(maxlen=256)
+        self.local = LocalRegistration(
+            mount,
+            live_preprocess,
+            p.fmt,
+            p.registration,
+            self._attitude_at if p.project_attitude else None,
+        )
         self.scorer = FeatureScorer(p.blend)
         self.tiles = TileStore(
             TileGrid(p.mosaic_res_m, p.tile_px), p.blend, spill, self.params.evict_after_s
@@ -191,7 +204,6 @@ class StreamingEngine:
         # Per frame, survey-long but small (a few numbers a frame).
         self.times: list[float] = []
         self.priors: list[Array] = []
-        self.prior_sigma: list[tuple[float, float]] = []
         self.poses: list[Array] = []
         self.outcomes: list[FrameOutcome] = []
         self.edges: list[Edge] = []
@@ -202,8 +214,14 @@ class StreamingEngine:
         self._last_render = -math.inf
         self._last_refine = -math.inf
         self._pending_frames: dict[TileKey, list[int]] = {}
-        self._edge_ends: list[int] = []  # edge.j of self.edges, ascending
-        self._sigmas: deque[tuple[float, float]] = deque(maxlen=1000)
+        # The live chain: per accepted frame, its chained position (local east/north),
+        # raw chained heading, and the filter's odometry there (to bridge rejections).
+        self.anchor = LiveAnchor(self.params.anchor)
+        self._chain: dict[int, Array] = {}
+        self._chain_heading: dict[int, float] = {}
+        self._odometry: dict[int, Array] = {}
+        self._last_chained: int | None = None
+        self._pending_fixes: deque[tuple[float, float, float]] = deque(maxlen=256)
         # The raw navigation for the survey-end pass: IMU rows compactly in arrays.
         self._imu = _ImuRecord()
         self._fixes: list[GnssFix] = []
@@ -269,6 +287,7 @@ class StreamingEngine:
             self.nav.add_imu(ImuInput(sample.time, fwd, stbd, rate))
         elif isinstance(sample, AttitudeSample):
             self._attitudes.append(sample)
+            self._recent_attitude.append(sample)
             self._attitude = sample
         elif isinstance(sample, HeadingSample):
             self._headings.append(sample)
@@ -285,6 +304,30 @@ class StreamingEngine:
             if sample.usable:
                 self._gnss(sample)
         self.stats.time("ekf", started)
+
+    def _attitude_at(self, stamp: float) -> Attitude | None:
+        """Roll and pitch when a ping stamped ``stamp`` was taken, from the recent
+        attitude reports (None without one within half a second)."""
+        recent = self._recent_attitude
+        if not recent:
+            return None
+        t = stamp - self.params.pipeline.single_stage.graph.sonar_latency_s
+        before = after = None
+        for a in reversed(recent):
+            if a.time <= t:
+                before = a
+                break
+            after = a
+        if before is None or after is None:
+            near = before or after
+            if near is None or abs(near.time - t) > 0.5:
+                return None
+            return Attitude(near.roll_rad, near.pitch_rad)
+        span = after.time - before.time
+        w = (t - before.time) / span if span > 0 else 0.0
+        roll = before.roll_rad + w * math.remainder(after.roll_rad - before.roll_rad, 2 * math.pi)
+        pitch = before.pitch_rad + w * (after.pitch_rad - before.pitch_rad)
+        return Attitude(roll, pitch)
 
     def _grid_heading(self, sample: HeadingSample) -> float:
         assert self.frame is not None
@@ -311,6 +354,7 @@ class StreamingEngine:
             velocity = (0.0, 0.0) if math.isnan(vx) else (vx, vy)
             self.nav.initialise(fix.time, x, y, self._grid_heading(self._pending_heading), velocity)
             return
+        self._pending_fixes.append((fix.time - self.params.gnss_time_offset_s, x, y))
         self.nav.update_position(fix.time, x, y, position_sigma(fix, p))
         if not math.isnan(vx):
             self.nav.update_velocity(fix.time, vx, vy, p.velocity_sigma_mps)
@@ -323,13 +367,11 @@ class StreamingEngine:
         started = clock.perf_counter()
         prior: Array | None = None
         odometry: Array | None = None
-        sigma = (math.inf, math.inf)
         if self.nav.initialised:
             self.nav.predict_to(ping.time)
             odometry = self.nav.odometry.copy()
-            state, cov = self.nav.state()
+            state, _ = self.nav.state()
             prior = state[[0, 1, PSI]]
-            sigma = (math.sqrt(0.5 * (cov[0, 0] + cov[1, 1])), math.sqrt(cov[PSI, PSI]))
         started = stats.time("ekf", started)
         sonar_frame = self.local.frame(ping)
         started = stats.time("preprocess", started)
@@ -337,10 +379,7 @@ class StreamingEngine:
         started = stats.time("registration", started)
         self.times.append(ping.time)
         self.priors.append(prior if prior is not None else np.full(3, np.nan))
-        self.prior_sigma.append(sigma)
         self.outcomes.append(outcome)
-        if math.isfinite(sigma[0]):
-            self._sigmas.append(sigma)
         if not outcome.accepted:
             stats.frames_rejected += 1
             stats.rejected[outcome.reason] = stats.rejected.get(outcome.reason, 0) + 1
@@ -351,11 +390,8 @@ class StreamingEngine:
         outcome.registration = None  # the edge is what is kept of it
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
-            self._edge_ends.append(outcome.edge.j)
-            e = outcome.edge
-            pose = compose(self.poses[e.i], RelativePose(e.forward_m, e.starboard_m, e.yaw_rad))
-        else:
-            pose = prior.copy()
+        self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
+        pose = self._live_pose(index)
         self.poses.append(pose)
         self._accepted.append(index)
         # Blend at once at the chained pose.
@@ -401,37 +437,88 @@ class StreamingEngine:
             self._pending_frames.setdefault(key, []).append(index)
         return touched
 
-    # -- windowed re-optimisation -----------------------------------------------------
+    # -- the live chain ---------------------------------------------------------------
+    def _chain_frame(
+        self,
+        index: int,
+        time: float,
+        prior: Array,
+        odometry: Array | None,
+        edge: Edge | None,
+    ) -> None:
+        """Chain an accepted frame onto the previous one: by its registration, else by the
+        filter's dead-reckoned motion (a rejection or a restart never jumps to the
+        prior); then give the anchor the fixes and the heading residual up to here."""
+        last = self._last_chained
+        if last is None:
+            self._chain[index] = prior[:2].copy()
+            self._chain_heading[index] = float(prior[2])
+            self.anchor.update_heading(time, 0.0)
+        else:
+            heading = self._chain_heading[last] + self.anchor.heading
+            reckoned = self._dead_reckoned(last, odometry)
+            if edge is not None and edge.i == last:
+                forward, starboard, dyaw = edge.forward_m, edge.starboard_m, edge.yaw_rad
+            else:
+                forward, starboard, dyaw = reckoned or (0.0, 0.0, 0.0)
+            if reckoned is not None:
+                # The heading follows the gyro (through the filter): over a ping it is good
+                # to a hundredth of a degree, where a registration's yaw is good to a few
+                # hundredths and its errors add up along the chain.
+                dyaw = reckoned[2]
+            s, c = math.sin(heading), math.cos(heading)
+            step = np.array([forward * s + starboard * c, forward * c - starboard * s])
+            self._chain[index] = self._chain[last] + step
+            self._chain_heading[index] = self._chain_heading[last] + dyaw
+            # Fixes whose (lagged) time lies up to this frame: residual against the chain.
+            t0 = self.times[last]
+            while self._pending_fixes and self._pending_fixes[0][0] <= time:
+                t_fix, x, y = self._pending_fixes.popleft()
+                if t_fix < t0 - 1.0:
+                    continue
+                w = min(max((t_fix - t0) / max(time - t0, 1e-6), 0.0), 1.0)
+                at = (1 - w) * self._chain[last] + w * self._chain[index]
+                self.anchor.update_position(t_fix, (x - float(at[0]), y - float(at[1])))
+            self.anchor.update_heading(
+                time, math.remainder(float(prior[2]) - self._chain_heading[index], 2 * math.pi)
+            )
+        if odometry is not None:
+            self._odometry[index] = odometry
+        self._last_chained = index
+
+    def _dead_reckoned(
+        self, last: int, odometry: Array | None
+    ) -> tuple[float, float, float] | None:
+        """The filter's motion since frame ``last`` in that frame (forward, starboard, yaw),
+        None when the filter has no odometry there."""
+        before = self._odometry.get(last)
+        if odometry is None or before is None:
+            return None
+        dx, dy, dyaw = odometry - before
+        heading = self._chain_heading[last] + self.anchor.heading
+        s, c = math.sin(heading), math.cos(heading)
+        return float(s * dx + c * dy), float(c * dx - s * dy), float(dyaw)
+
+    def _live_pose(self, k: int) -> Array:
+        """The chained frame where the anchor puts it now (local metres, grid heading)."""
+        ce, cn = self.anchor.correction
+        xy = self._chain[k]
+        heading = (self._chain_heading[k] + self.anchor.heading) % (2 * math.pi)
+        return np.array([xy[0] + ce, xy[1] + cn, heading])
+
+    # -- the live window -------------------------------------------------------------
     def _solve_window(self, final: bool) -> None:
-        """Re-solve the last ``window_frames`` accepted frames, holding the one before
-        them; re-blend frames that moved; finalise frames leaving the window."""
+        """Place the frames still in the window where the anchor now puts them (frames
+        move with its correction, never against each other); re-blend frames that moved;
+        finalise frames leaving the window."""
         self._since_solve = 0
         started = clock.perf_counter()
         accepted = self._accepted
-        window = accepted[max(self._final_upto - 1, 0) :]
-        if len(window) >= 2:
+        window = accepted[self._final_upto :]
+        if window:
             self.stats.windows_solved += 1
-            position = {k: i for i, k in enumerate(window)}
-            priors = np.array([self.priors[k] for k in window])
-            initial = np.array([self.poses[k] for k in window])
-            sig = np.array([self.prior_sigma[k] for k in window])
-            # "Usual" uncertainty: the median of the last thousand frames'.
-            typical = np.median(np.array(self._sigmas), axis=0) if self._sigmas else sig[0]
-            weights = np.minimum(1.0, (typical / np.maximum(sig, 1e-9)) ** 2)
-            first = bisect.bisect_left(self._edge_ends, window[0])
-            edges = [
-                Edge(position[e.i], position[e.j], e.forward_m, e.starboard_m, e.yaw_rad, e.weight)
-                for e in self.edges[first:]
-                if e.i in position and e.j in position
-            ]
-            fixed = np.zeros(len(window), bool)
-            if self._final_upto > 0:
-                fixed[0] = True  # the last final pose holds the window in place
-            solution = optimise(
-                initial, priors, edges, self.params.pipeline.optimiser, weights, fixed
-            )
-            for i, k in enumerate(window):
-                self.poses[k] = solution.poses[i]
+            for k in window:
+                self.poses[k] = self._live_pose(k)
         self.stats.time("optimisation", started)
         started = clock.perf_counter()
         # Frames leaving the window become final.
@@ -448,6 +535,11 @@ class StreamingEngine:
             if live is not None:
                 self.tiles.settle(k, live.tiles)
             self._emit_pose(k, final=True)
+            # A final frame is never chained onto again but the last one.
+            if k != self._last_chained:
+                self._chain.pop(k, None)
+                self._chain_heading.pop(k, None)
+                self._odometry.pop(k, None)
         self._final_upto = upto
         self.stats.time("blending", started)
 

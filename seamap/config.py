@@ -118,15 +118,28 @@ class MappingConfig:
     mosaic_res_m: float = 0.02
     """Mosaic pixel size (metres); tiles are 256 pixels square."""
     lambda_local: float = 1e4
-    """The paper's lambda: weight of registrations against the EKF priors."""
+    """The paper's lambda. Single- and two-stage weigh every measurement by its own
+    covariance; lambda / 1e4 scales the registrations' information (1e4: as measured),
+    which is what the paper's lambda sweep varies."""
     alpha: float = 1.0 / 225.0
-    """The paper's alpha: weight of squared angle (degrees) against squared metres."""
+    """The paper's alpha (squared degrees against squared metres): kept for the paper's
+    objective (``mapping.posegraph``); the fusion weighs angles by their own sigmas."""
     tau_p_m: float = 0.15
     """Largest disagreement between a registration and the EKF's relative motion (m)."""
     tau_a_deg: float = 3.0
     """Largest disagreement in relative yaw (degrees)."""
     loop_closures: bool = True
     """Register overlapping frames of different lanes and use them as constraints."""
+    gnss_white_sigma_m: float = 0.6
+    """Single-stage: white part of the GNSS error, per axis (m; u-blox M8N: 0.5-0.8)."""
+    gnss_bias_sigma_m: float = 1.2
+    """Single-stage: the GNSS error's slowly wandering part, per axis (m; M8N: 1-1.5)."""
+    gnss_bias_tau_s: float = 45.0
+    """Single-stage: correlation time of that wander (s; M8N: tens of seconds)."""
+    gnss_lag_s: float = 0.15
+    """How long before its stamp a fix saw the antenna (s; refined by the solve)."""
+    sonar_latency_s: float = 0.05
+    """Time from a ping's acquisition to its receive stamp (s)."""
     blending: str = "robust"
     """"robust" (the paper's variance-based blending) or "average"."""
 
@@ -160,6 +173,11 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("sonar", "gamma"): (0, 255),
     ("sonar", "tcp_port"): (1, 65535),
     ("sonar", "status_port"): (1, 65535),
+    ("mapping", "gnss_white_sigma_m"): (0.01, 100.0),
+    ("mapping", "gnss_bias_sigma_m"): (0.01, 100.0),
+    ("mapping", "gnss_bias_tau_s"): (1.0, 1e5),
+    ("mapping", "gnss_lag_s"): (0.0, 2.0),
+    ("mapping", "sonar_latency_s"): (0.0, 2.0),
 }
 
 

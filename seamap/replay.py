@@ -25,9 +25,10 @@ from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.samples import Ping
+from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
 from mapping.tiles import TileSpill
-from seamap.config import SiteConfig, SonarConfig, load_config
+from seamap.config import MappingConfig, SiteConfig, SonarConfig, load_config
 from seamap.errors import SeamapError
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
 from seamap.tilespill import DiskSpill
@@ -71,6 +72,28 @@ def pipeline_params(config: SiteConfig) -> PipelineParams:
         registration=replace(defaults.registration, tau_p_m=m.tau_p_m, tau_a_deg=m.tau_a_deg),
         loops=replace(defaults.loops, enabled=m.loop_closures),
         blend=replace(defaults.blend, method=m.blending),
+        single_stage=single_stage_params(m, defaults.single_stage),
+    )
+
+
+def single_stage_params(m: MappingConfig, defaults: SingleStageParams) -> SingleStageParams:
+    """The single-stage fusion's error models from the [mapping] table (physical units)."""
+    fusion = defaults.fusion
+    gnss = replace(
+        fusion.gnss,
+        white_sigma_m=m.gnss_white_sigma_m,
+        bias_sigma_m=m.gnss_bias_sigma_m,
+        bias_tau_s=m.gnss_bias_tau_s,
+        time_offset_s=m.gnss_lag_s - m.sonar_latency_s,
+    )
+    return replace(
+        defaults,
+        fusion=replace(fusion, gnss=gnss),
+        graph=replace(
+            defaults.graph,
+            sonar_latency_s=m.sonar_latency_s,
+            registration_scale=m.lambda_local / 1e4,
+        ),
     )
 
 
@@ -258,6 +281,7 @@ def replay(
             "skipped_in_log": skipped,
         },
         "navigation": nav_info,
+        "fusion": result.fusion,
         "crs": {"epsg": epsg, "res_m": params.mosaic_res_m, "west": west, "north": north},
         "mosaic": {
             "width": int(image.shape[1]),

@@ -1,16 +1,20 @@
 """Score a mapping result against a simulator's truth (``truth.json`` and ``seabed.tif``).
 
 Reports the absolute trajectory error of the vehicle reference point, heading error,
-relative-pose consistency against the truth, the quadrat-spacing error of the paper's
-Table III (quadrats located in the mosaic by template matching), how far the located
-quadrats are from where the truth puts them, and a displacement field between the mosaic
-and the true seabed (phase correlation in patches).
+relative-pose consistency and the relative pose error over 10 s against the truth; the
+lane disagreement (``tools.lanes``: how far apart two passes over the same seabed draw
+it, from the true fans and the estimated poses); the quadrat-spacing error of the paper's
+Table III (each quadrat array located in the mosaic as a rigid layout, then each frame by
+template matching) within each array, and each array's offset from the truth (the
+georeferencing error); and a displacement field between the mosaic and the true seabed
+(phase correlation in patches).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +24,10 @@ import numpy.typing as npt
 import rasterio
 
 from mapping.metrics import (
+    Found,
     Quadrat,
     absolute_trajectory_error,
+    array_offsets,
     displacement_field,
     image_metrics,
     locate_quadrats,
@@ -30,8 +36,12 @@ from mapping.metrics import (
 )
 from mapping.pipeline import SurveyResult
 from seamap.errors import SeamapError
+from tools.footprint import Fan, Heads, fan_hits
+from tools.lanes import lane_disagreement
+from tools.se2 import relative_pose_error
 
 Array = npt.NDArray[np.float64]
+Index = npt.NDArray[np.int64]
 
 
 def load_truth(path: Path) -> dict[str, Any]:
@@ -46,31 +56,66 @@ def load_truth(path: Path) -> dict[str, Any]:
     return truth
 
 
-def truth_poses(truth: dict[str, Any], times: Array) -> Array:
-    """True (east, north, grid heading rad) of the antenna at each frame time (UTM);
-    NaN where no truth ping has that time."""
-    pings = truth["pings"]
-    t = np.array([p["time"] for p in pings])
-    out = np.full((times.size, 3), np.nan)
-    order = np.argsort(t)
+def truth_index(truth: dict[str, Any], times: Array, tolerance_s: float = 1e-4) -> Index:
+    """Per frame time, the index of the truth ping with that time (the .oculus item
+    time), or -1 where there is none."""
+    t = np.array([p["time"] for p in truth["pings"]], dtype=np.float64)
+    out = np.full(times.size, -1, np.int64)
+    if t.size == 0 or times.size == 0:
+        return out
+    order = np.argsort(t, kind="stable")
     t_sorted = t[order]
-    idx = np.clip(np.searchsorted(t_sorted, times), 0, max(t.size - 1, 0))
-    for k, (i, time) in enumerate(zip(idx, times, strict=True)):
-        for j in (i - 1, i):
-            if 0 <= j < t.size and abs(t_sorted[j] - time) < 1e-4:
-                p = pings[order[j]]
-                out[k] = (p["east"], p["north"], math.radians(p["grid_heading_deg"]))
+    right = np.clip(np.searchsorted(t_sorted, times), 0, t.size - 1)
+    left = np.clip(right - 1, 0, t.size - 1)
+    nearer = np.where(
+        np.abs(t_sorted[left] - times) <= np.abs(t_sorted[right] - times), left, right
+    )
+    close = np.abs(t_sorted[nearer] - times) < tolerance_s
+    out[close] = order[nearer[close]]
     return out
 
 
+def truth_poses(truth: dict[str, Any], times: Array) -> Array:
+    """True (east, north, grid heading rad) of the antenna at each frame time (UTM);
+    NaN where no truth ping has that time."""
+    index = truth_index(truth, times)
+    pings = truth["pings"]
+    out = np.full((times.size, 3), np.nan)
+    known = np.flatnonzero(index >= 0)
+    if known.size:
+        rows = [pings[i] for i in index[known]]
+        out[known] = [(p["east"], p["north"], math.radians(p["grid_heading_deg"])) for p in rows]
+    return out
+
+
+def truth_heads(truth: dict[str, Any], times: Array) -> Heads:
+    """The true sonar head at each frame time (``tools.footprint.Heads``); NaN where no
+    truth ping has that time."""
+    index = truth_index(truth, times)
+    if not truth["pings"]:
+        return Heads.missing(times.size)
+    aligned = Heads.from_pings(truth["pings"]).take(np.maximum(index, 0))
+    missing = index < 0
+    for column in (aligned.east, aligned.north):
+        column[missing] = np.nan
+    return aligned
+
+
 def quadrats_of(truth: dict[str, Any]) -> list[Quadrat]:
+    """The truth's quadrats (``features.quadrats``); ``array`` absent: one array."""
     out = []
     for q in truth.get("features", {}).get("quadrats", []):
         (e0, n0), (e1, n1) = q["corners"][0], q["corners"][1]
         side_bearing = math.atan2(e1 - e0, n1 - n0)
         out.append(
             Quadrat(
-                q["centre_east"], q["centre_north"], q["side_m"], q["row"], q["index"], side_bearing
+                q["centre_east"],
+                q["centre_north"],
+                q["side_m"],
+                q["row"],
+                q["index"],
+                side_bearing,
+                int(q.get("array", 0)),
             )
         )
     return out
@@ -108,6 +153,83 @@ def seabed_on_grid(
     return warped.astype(np.float64)
 
 
+def estimated_poses(result: SurveyResult) -> Array:
+    """The result's vehicle poses in UTM (east, north, grid heading rad); NaN where the
+    frame was not mapped."""
+    est = np.full_like(result.poses, np.nan)
+    ok = np.all(np.isfinite(result.poses), axis=1)
+    est[ok, 0], est[ok, 1] = result.frame.to_utm(result.poses[ok, 0], result.poses[ok, 1])
+    est[ok, 2] = result.poses[ok, 2]
+    return est
+
+
+def trajectory_section(times: Array, est: Array, true: Array) -> dict[str, Any]:
+    """ATE, heading error, frame-to-frame consistency and the relative pose error over
+    10 s of the estimated trajectory against the true one."""
+    ate = absolute_trajectory_error(est, true)
+    heading_err = np.degrees(np.angle(np.exp(1j * (est[:, 2] - true[:, 2]))))
+    finite = np.isfinite(heading_err)
+    mae, rmse = relative_pose_consistency(est, true)
+    rpe = relative_pose_error(times, est, true, window_s=10.0)
+    return {
+        **ate,
+        "heading_rmse_deg": float(np.sqrt(np.mean(heading_err[finite] ** 2)))
+        if finite.any()
+        else math.nan,
+        "relative_mae": mae,
+        "relative_rmse": rmse,
+        "rpe_10s_m": rpe["translation_rms_m"],
+        "rpe_10s_deg": rpe["yaw_rms_deg"],
+        "rpe_10s_pairs": rpe["pairs"],
+        "frames_scored": int(finite.sum()),
+    }
+
+
+MIN_VIEWS = 3
+"""Mapped frames whose true fan must see a quadrat's centre for it to be looked for."""
+
+
+def quadrat_views(
+    quadrats: list[Quadrat], heads: Heads, fan: Fan, est: Array
+) -> npt.NDArray[np.int64]:
+    """How many mapped frames' true fans saw each quadrat's centre."""
+    mapped = np.flatnonzero(np.all(np.isfinite(est), axis=1) & np.isfinite(heads.east))
+    centres = np.array([(q.east, q.north) for q in quadrats], float).reshape(-1, 2)
+    _, points = fan_hits(fan, heads.take(mapped), centres[:, 0], centres[:, 1])
+    return np.bincount(points, minlength=len(quadrats)).astype(np.int64)
+
+
+def quadrat_section(
+    quadrats: list[Quadrat], views: npt.NDArray[np.int64], image: Array,
+    covered: npt.NDArray[np.bool_], west: float, north: float, res_m: float,
+) -> dict[str, Any]:  # fmt: skip
+    """The quadrats located in the mosaic: spacing error within each array and over all
+    pairs, how far they lie from the truth, and each array's offset (the absolute
+    georeferencing error there). Only quadrats the sonar saw (``views`` >= MIN_VIEWS
+    mapped frames) are looked for: a frame never imaged can only be found in the
+    speckle."""
+    seen = [k for k in range(len(quadrats)) if views[k] >= MIN_VIEWS]
+    found: list[Found] = [None] * len(quadrats)
+    if seen:
+        placed = locate_quadrats(image, covered, west, north, res_m, [quadrats[k] for k in seen])
+        for k, f in zip(seen, placed, strict=True):
+            found[k] = f
+    spacing: dict[str, Any] = dict(quadrat_spacing_error(quadrats, found))
+    spacing["seen"] = float(len(seen))
+    offsets = [
+        math.hypot(f[0] - q.east, f[1] - q.north)
+        for q, f in zip(quadrats, found, strict=True)
+        if f is not None
+    ]
+    spacing["position_mean_m"] = float(np.mean(offsets)) if offsets else math.nan
+    spacing["position_max_m"] = float(np.max(offsets)) if offsets else math.nan
+    arrays = array_offsets(quadrats, found)
+    spacing["arrays"] = arrays
+    norms = [a["offset_m"] for a in arrays if math.isfinite(a["offset_m"])]
+    spacing["array_offset_max_m"] = float(max(norms)) if norms else math.nan
+    return spacing
+
+
 def evaluate(
     truth_path: Path,
     result: SurveyResult,
@@ -116,43 +238,39 @@ def evaluate(
     north: float,
     res_m: float,
 ) -> dict[str, Any]:
+    """The accuracy of one mapping result against the simulator's truth (report.json's
+    ``accuracy``): ``trajectory``, ``lanes``, ``mosaic_quality``, ``quadrat_spacing``
+    (when the truth has quadrats), ``mosaic_vs_seabed`` (when it has the seabed), and the
+    seconds each took (``timings_s``)."""
+    clock = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = round(now - clock, 4)
+        clock = now
+
     truth = load_truth(truth_path)
-    frame = result.frame
-    est = np.full_like(result.poses, np.nan)
-    ok = np.all(np.isfinite(result.poses), axis=1)
-    est[ok, 0], est[ok, 1] = frame.to_utm(result.poses[ok, 0], result.poses[ok, 1])
-    est[ok, 2] = result.poses[ok, 2]
+    est = estimated_poses(result)
     true = truth_poses(truth, result.times)
-    ate = absolute_trajectory_error(est, true)
-    heading_err = np.degrees(np.angle(np.exp(1j * (est[:, 2] - true[:, 2]))))
-    finite = np.isfinite(heading_err)
-    mae, rmse = relative_pose_consistency(est, true)
-    report: dict[str, Any] = {
-        "trajectory": {
-            **ate,
-            "heading_rmse_deg": float(np.sqrt(np.mean(heading_err[finite] ** 2)))
-            if finite.any()
-            else math.nan,
-            "relative_mae": mae,
-            "relative_rmse": rmse,
-            "frames_scored": int(finite.sum()),
-        }
-    }
+    report: dict[str, Any] = {"trajectory": trajectory_section(result.times, est, true)}
+    lap("trajectory")
+    quadrats = quadrats_of(truth)
+    centres = np.array([(q.east, q.north) for q in quadrats], float).reshape(-1, 2)
+    heads, fan = truth_heads(truth, result.times), Fan.from_truth(truth)
+    report["lanes"] = lane_disagreement(result.times, true, est, heads, fan, centres)
+    lap("lanes")
     covered = mosaic > 0
     image = mosaic.astype(np.float64) / 255.0
     report["mosaic_quality"] = image_metrics(image, covered)
-    quadrats = quadrats_of(truth)
+    lap("mosaic_quality")
     if quadrats:
-        found = locate_quadrats(image, covered, west, north, res_m, quadrats)
-        spacing = quadrat_spacing_error(quadrats, found)
-        offsets = [
-            math.hypot(f[0] - q.east, f[1] - q.north)
-            for q, f in zip(quadrats, found, strict=True)
-            if f is not None
-        ]
-        spacing["position_mean_m"] = float(np.mean(offsets)) if offsets else math.nan
-        spacing["position_max_m"] = float(np.max(offsets)) if offsets else math.nan
-        report["quadrat_spacing"] = spacing
+        views = quadrat_views(quadrats, heads, fan, est)
+        report["quadrat_spacing"] = quadrat_section(
+            quadrats, views, image, covered, west, north, res_m
+        )
+        lap("quadrat_spacing")
     seabed = seabed_on_grid(truth_path, truth, mosaic.shape, west, north, res_m)
     if seabed is not None:
         field = displacement_field(image, covered, seabed)
@@ -163,4 +281,6 @@ def evaluate(
             "max_m": field["max_px"] * res_m,
             "patches": field["patches"],
         }
+        lap("mosaic_vs_seabed")
+    report["timings_s"] = timings
     return report

@@ -9,6 +9,7 @@ import pytest
 
 from mapping.fmt import FmtRegistrar, RelativePose
 from tests.mapping import synth
+from tests.mapping import test_fmt_bed as bed
 
 
 @pytest.fixture(scope="module")
@@ -55,13 +56,15 @@ def test_recovers_known_shifts_and_rotations_within_a_pixel_and_a_tenth_of_a_deg
     assert err[:, 2].max() < 0.1, err[:, 2]
 
 
-def test_guided_search_finds_the_motion_near_the_prior(scene):
+def test_a_prior_near_the_motion_finds_it(scene):
     _, grid, mask = scene
     registrar = FmtRegistrar(grid, mask)
     rng = np.random.default_rng(5)
     a, b = frame_pair(scene, 0.12, -0.05, math.radians(1.5), 0.7, rng)
     prior = RelativePose(0.10, -0.02, math.radians(1.0))
-    result = registrar.register(registrar.prepare(a), registrar.prepare(b), prior, search_m=0.1)
+    result = registrar.register(
+        registrar.prepare(a), registrar.prepare(b), prior, prior_sigma_m=0.1
+    )
     assert abs(result.relative.forward_m - 0.12) < grid.res_m
     assert abs(result.relative.starboard_m + 0.05) < grid.res_m
     assert result.score > 0.05
@@ -77,3 +80,41 @@ def test_unrelated_frames_score_low(scene):
     unrelated = registrar.register(registrar.prepare(a), registrar.prepare(b))
     related = registrar.register(registrar.prepare(a), registrar.prepare(same))
     assert related.score > 3 * max(unrelated.score, 0.01)
+
+
+@pytest.mark.parametrize("search", ["search_m", "prior_sigma_m"])
+def test_a_prior_half_a_metre_and_a_degree_and_a_half_off_does_not_hide_the_motion(search):
+    """The EKF's frame-to-frame yaw a degree and a half off puts the peak 0.4 m from where
+    it predicts: the whole surface is searched, the prior only weighs the peaks (also
+    when given the way callers used to give a search window)."""
+    sonar = bed.Sonar()
+    seabed = bed.make_seabed(np.random.default_rng(21))
+    rng = np.random.default_rng(22)
+    registrar = sonar.registrar()
+    start = (7.0, 6.5, 0.4)
+    truth = RelativePose(0.25, 0.04, math.radians(2.0))
+    earlier = registrar.prepare(sonar.frame(seabed, start, rng))
+    later = registrar.prepare(sonar.frame(seabed, bed.moved(start, truth), rng))
+    # 0.4 m off where the fan is (3.7 m out): 0.33 m forward, 0.1 m and 1.5 degrees aside.
+    prior = RelativePose(truth.forward_m - 0.33, truth.starboard_m + 0.1, truth.yaw_rad - 0.026)
+    if search == "search_m":
+        result = registrar.register(earlier, later, prior, 0.15)
+    else:
+        result = registrar.register(earlier, later, prior, prior_sigma_m=0.15)
+    rel = result.relative
+    assert abs(rel.forward_m - truth.forward_m) < 0.5 * sonar.grid.res_m
+    assert abs(rel.starboard_m - truth.starboard_m) < 0.5 * sonar.grid.res_m
+    assert abs(math.degrees(rel.yaw_rad - truth.yaw_rad)) < 0.1
+    assert result.score > 0.2
+
+
+def test_results_carry_a_covariance_and_themselves_as_the_first_hypothesis(scene):
+    _, grid, mask = scene
+    registrar = FmtRegistrar(grid, mask)
+    rng = np.random.default_rng(5)
+    a, b = frame_pair(scene, 0.12, -0.05, math.radians(1.5), 0.7, rng)
+    result = registrar.register(registrar.prepare(a), registrar.prepare(b))
+    assert result.covariance is not None and result.covariance.shape == (3, 3)
+    assert np.all(np.linalg.eigvalsh(result.covariance) > 0)
+    (only,) = result.hypotheses
+    assert only.relative == result.relative and only.score == result.score

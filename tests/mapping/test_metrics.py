@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mapping.metrics import Quadrat, locate_quadrats, quadrat_spacing_error
+from mapping.metrics import Quadrat, array_offsets, locate_quadrats, quadrat_spacing_error
 
 RES = 0.02
 
@@ -68,3 +68,112 @@ def test_spacing_error_sees_a_misplaced_frame() -> None:
     found[3] = (found[3][0] + 0.1, found[3][1], 1.0)
     result = quadrat_spacing_error(quadrats, found)
     assert 0.02 < result["rmse"] < 0.1
+
+
+def array_layout(centre: tuple[float, float], bearing_deg: float, array: int) -> list[Quadrat]:
+    """A 2 x 4 array like ``layout`` around ``centre``, tagged with its array index."""
+    shift = np.array(centre) - 500.0
+    return [
+        Quadrat(
+            q.east + shift[0],
+            q.north + shift[1],
+            q.side_m,
+            q.row,
+            q.index,
+            q.orientation_rad,
+            array,
+        )
+        for q in layout(bearing_deg)
+    ]
+
+
+def draw_at(
+    quadrats: list[Quadrat],
+    places: list[tuple[float, float]],
+    bounds: tuple[float, float, float, float],
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, float, float]:
+    """Quadrat outlines drawn centred at ``places`` (UTM) on noisy sand; bounds (west,
+    south, east, north)."""
+    west, south, east, north = bounds
+    image = rng.normal(0.4, 0.08, (round((north - south) / RES), round((east - west) / RES)))
+    image = image.astype(np.float32)
+    for q, (pe, pn) in zip(quadrats, places, strict=True):
+        along = np.array([math.sin(q.orientation_rad), math.cos(q.orientation_rad)])
+        across = np.array([math.cos(q.orientation_rad), -math.sin(q.orientation_rad)])
+        corners = []
+        for du, dv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+            p = np.array([pe, pn]) + q.side_m / 2 * (du * along + dv * across)
+            corners.append([(p[0] - west) / RES - 0.5, (north - p[1]) / RES - 0.5])
+        cv2.polylines(
+            image, [np.round(np.array(corners) * 4).astype(np.int32)], True, 0.95, 2, cv2.LINE_AA, 2
+        )
+    return np.clip(image, 0, 1), west, north
+
+
+def test_a_map_on_a_gnss_offset_scores_no_spacing_error_and_gives_the_offset_back() -> None:
+    # 1.7 m along rows 1 m apart: the layout also fits 0.7 m and 2.7 m off, six frames of
+    # eight; the frames' own matches must pick 1.7.
+    quadrats = array_layout((500.0, 500.0), 90.0, 0)
+    places = [(q.east + 1.7, q.north) for q in quadrats]
+    image, west, north = draw_at(quadrats, places, (488, 490, 512, 510), np.random.default_rng(2))
+    found = locate_quadrats(image, np.ones(image.shape, bool), west, north, RES, quadrats)
+    spacing = quadrat_spacing_error(quadrats, found)
+    assert spacing["located"] == 8 and spacing["rmse"] < 0.01
+    (array,) = array_offsets(quadrats, found)
+    assert array["offset_east_m"] == pytest.approx(1.7, abs=0.02)
+    assert array["offset_north_m"] == pytest.approx(0.0, abs=0.02)
+    assert array["offset_m"] == pytest.approx(1.7, abs=0.02)
+
+
+def test_one_moved_quadrat_gives_its_spacing_error() -> None:
+    quadrats = array_layout((500.0, 500.0), 78.0, 0)
+    places = [(q.east - 1.2, q.north + 1.2) for q in quadrats]
+    places[5] = (places[5][0] + 0.12, places[5][1] - 0.05)
+    image, west, north = draw_at(quadrats, places, (488, 488, 512, 512), np.random.default_rng(3))
+    found = locate_quadrats(image, np.ones(image.shape, bool), west, north, RES, quadrats)
+    expected = quadrat_spacing_error(quadrats, [(e, n, 1.0) for e, n in places])
+    got = quadrat_spacing_error(quadrats, found)
+    assert expected["rmse"] > 0.04
+    assert got["rmse"] == pytest.approx(expected["rmse"], abs=0.005)
+    assert got["mae"] == pytest.approx(expected["mae"], abs=0.005)
+    assert found[5] is not None
+    assert found[5][0] == pytest.approx(places[5][0], abs=0.02)
+
+
+def test_each_array_is_located_on_its_own_offset() -> None:
+    quadrats = (
+        array_layout((500.0, 500.0), 78.0, 0)
+        + array_layout((512.0, 503.0), 0.0, 1)
+        + array_layout((504.0, 489.0), 135.0, 2)
+    )
+    shifts = {0: (1.7, 0.0), 1: (-2.3, 1.1), 2: (0.6, 2.9)}
+    places = [(q.east + shifts[q.array][0], q.north + shifts[q.array][1]) for q in quadrats]
+    image, west, north = draw_at(quadrats, places, (490, 480, 522, 510), np.random.default_rng(4))
+    found = locate_quadrats(image, np.ones(image.shape, bool), west, north, RES, quadrats)
+    spacing = quadrat_spacing_error(quadrats, found)
+    assert spacing["located"] == 24
+    assert spacing["pairs"] == 3 * 28 and spacing["all_pairs"] == 24 * 23 / 2
+    assert spacing["rmse"] < 0.01  # within each array: right
+    assert spacing["all_rmse"] > 0.5  # across arrays: the different offsets show
+    for entry in array_offsets(quadrats, found):
+        east, north_m = shifts[int(entry["array"])]
+        assert entry["offset_east_m"] == pytest.approx(east, abs=0.02)
+        assert entry["offset_north_m"] == pytest.approx(north_m, abs=0.02)
+        assert entry["rmse"] < 0.01 and entry["located"] == 8
+
+
+def test_a_half_covered_array_is_not_placed_a_frame_off() -> None:
+    # The mosaic stops short of the last column of frames: the layout one frame off along
+    # the row matches as many frames as the right one, but its frames match worse.
+    quadrats = array_layout((500.0, 500.0), 90.0, 0)
+    places = [(q.east + 2.6, q.north - 0.8) for q in quadrats]
+    image, west, north = draw_at(quadrats, places, (486, 490, 514, 510), np.random.default_rng(5))
+    covered = np.ones(image.shape, bool)
+    covered[:, round((504.0 - west) / RES) :] = False  # east of the third column
+    found = locate_quadrats(image * covered, covered, west, north, RES, quadrats)
+    located = [(q, f) for q, f in zip(quadrats, found, strict=True) if f is not None]
+    assert len(located) >= 4
+    for q, f in located:
+        assert f[0] - q.east == pytest.approx(2.6, abs=0.03)
+        assert f[1] - q.north == pytest.approx(-0.8, abs=0.03)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from mapping.polar import (
@@ -31,6 +31,29 @@ def test_ground_and_polar_round_trip(
     r, b = ground_to_polar(np.array([forward]), np.array([starboard]), altitude, tilt)
     f2, s2 = polar_to_ground(r, b, altitude, tilt)
     np.testing.assert_allclose([f2[0], s2[0]], [forward, starboard], atol=1e-9)
+
+
+@given(
+    slant=st.floats(0.2, 8.0),
+    bearing_deg=st.floats(-70.0, 70.0),
+    altitude=st.floats(0.1, 3.0),
+    tilt_deg=st.floats(0.0, 40.0),
+)
+def test_a_beam_is_a_cone_about_the_array_whatever_the_tilt(
+    slant: float, bearing_deg: float, altitude: float, tilt_deg: float
+) -> None:
+    """Level: the echo is r sin(theta) to starboard and sqrt(r^2 cos^2(theta) - h^2)
+    forward, or nowhere on the seabed when the cone does not reach it."""
+    theta = math.radians(bearing_deg)
+    f, s = polar_to_ground(np.array([slant]), np.array([theta]), altitude, math.radians(tilt_deg))
+    ground_sq = (slant * math.cos(theta)) ** 2 - altitude**2
+    assume(abs(ground_sq) > 1e-6)  # grazing: the forward distance is ill-conditioned
+    if ground_sq < 0:
+        assert np.isnan(f[0])
+        return
+    np.testing.assert_allclose(
+        [f[0], s[0]], [math.sqrt(ground_sq), slant * math.sin(theta)], atol=1e-9
+    )
 
 
 def test_a_bright_cell_appears_at_its_ground_position() -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
@@ -77,7 +79,8 @@ def test_a_bright_point_appears_at_its_range_bin_and_beam(
 ):
     """Place a small bright patch on the seabed; it lights the (range, beam) cell that
     the 3-D geometry (tilt, altitude, roll, pitch) predicts, computed independently here
-    by transforming the vector to the target into the sonar frame."""
+    by transforming the vector to the target into the sonar frame: the line array's
+    bearing is asin(p_y / |p|), the angle about the array axis atan2(p_z, p_x)."""
     m = model()
     pose = pose_for(m, heading, pitch, roll)
     bearing = heading + azimuth
@@ -86,9 +89,9 @@ def test_a_bright_point_appears_at_its_range_bin_and_beam(
     to_target = np.array([target_n, target_e, DEPTH_M]) - pose.position_ned
     in_sonar = pose.rotation.T @ to_target
     slant = float(np.linalg.norm(to_target))
-    beam_bearing = math.atan2(in_sonar[1], in_sonar[0])
-    elevation = math.asin(in_sonar[2] / slant)
-    assume(abs(elevation) < math.radians(10))  # inside the vertical beam
+    beam_bearing = math.asin(in_sonar[1] / slant)
+    psi = math.atan2(in_sonar[2], in_sonar[0])
+    assume(abs(psi) < math.radians(10))  # inside the vertical beam
 
     plain = flat_seabed()
     bright = flat_seabed()
@@ -168,6 +171,73 @@ def test_a_raised_object_casts_a_shadow_behind_it():
     assert centre[face].max() > 1.3 * flat[face].max()
 
 
+def _spherical_footprint(pose, bearing: float, slant: float) -> np.ndarray:
+    """Where the spherical (azimuth/elevation) model would put the echo of ``bearing`` at
+    ``slant`` on the flat bed: d = (cos phi cos theta, cos phi sin theta, sin phi), phi
+    found by bisection so that the point lies on the bed."""
+    lo, hi = -math.pi / 2 + 1e-6, math.pi / 2 - 1e-6  # depth grows with phi here
+    for _ in range(80):
+        phi = (lo + hi) / 2
+        d = np.array([math.cos(phi) * math.cos(bearing), math.cos(phi) * math.sin(bearing),
+                      math.sin(phi)])  # fmt: skip
+        depth = (pose.position_ned + slant * pose.rotation @ d)[2]
+        lo, hi = (phi, hi) if depth < DEPTH_M else (lo, phi)
+    return pose.position_ned + slant * pose.rotation @ d
+
+
+def test_a_beam_is_a_cone_about_the_array_axis():
+    """The echo of beam theta at slant range r lies where sin theta = p_y / r (p in the
+    sonar frame), on the seabed: at 60 degrees and 2.5 m some 20 cm from where the
+    spherical model would put it; the rendered image lights that beam."""
+    m = model(n_beams=256)
+    pose = pose_for(m, 0.3, 0.02, -0.03)
+    bed = flat_seabed()
+    fp = footprint(m, pose, bed)
+    beam = int(np.argmin(np.abs(m.bearings_rad - math.radians(60.0))))
+    row = int(np.argmin(np.abs(m.ranges_m - 2.5)))
+    theta, slant = float(m.bearings_rad[beam]), float(m.ranges_m[row])
+    assert fp.valid[row, beam]
+    point = np.array([fp.north[row, beam], fp.east[row, beam], DEPTH_M])
+    p = pose.rotation.T @ (point - pose.position_ned)
+    assert np.linalg.norm(p) == pytest.approx(slant, abs=2e-4)
+    assert p[1] / slant == pytest.approx(math.sin(theta), abs=2e-5)
+    spherical = _spherical_footprint(pose, theta, slant)
+    assert 0.15 < float(np.linalg.norm(spherical[:2] - point[:2])) < 0.4
+
+    # A bright patch there lights beam theta, not the spherical model's bearing of it
+    # (with a vertical aperture wide enough to see a bed this far down the cone).
+    wide = dataclasses.replace(m, vertical_aperture_rad=math.radians(100.0))
+    bright = flat_seabed()
+    col, r = bright.pixel(np.array(point[1]), np.array(point[0]))
+    c0, r0 = int(np.floor(col + 0.5)), int(np.floor(r + 0.5))
+    bright.reflectivity[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2] = 255
+    diff = render_ping(wide, pose, bright, None).astype(int) - render_ping(wide, pose, bed, None)
+    peak_row, peak_beam = np.unravel_index(np.argmax(diff), diff.shape)
+    assert abs(int(peak_row) - row) <= 2 and abs(int(peak_beam) - beam) <= 1
+    spherical_bearing = math.atan2(p[1], p[0])
+    assert abs(spherical_bearing - theta) > math.radians(4.0)
+
+
+def test_the_lit_swath_bends_away_at_wide_bearings():
+    """The vertical beam is a band of psi about the array axis: from a level sonar, the
+    bed enters it where cos(theta) sin(psi + tilt) = altitude / r, so the lit band starts
+    twice as far out at 60 degrees as ahead (a spherical fan would light both alike)."""
+    m = model(n_beams=256, range_resolution_m=0.02)
+    pose = pose_for(m, 0.0, 0.0, 0.0)
+    shallow = dataclasses.replace(flat_seabed(refl=90), depth0=SONAR_DEPTH_M + 0.5)
+    image = render_ping(m, pose, shallow, None).astype(float)
+    r = m.ranges_m
+    past_ringdown = r > 0.3
+
+    def onset(bearing_deg: float) -> float:
+        beam = int(np.argmin(np.abs(m.bearings_rad - math.radians(bearing_deg))))
+        profile = np.where(past_ringdown, image[:, beam - 1 : beam + 2].mean(axis=1), 0.0)
+        return float(r[np.argmax(profile > 0.5 * profile.max())])
+
+    ratio = onset(60.0) / onset(0.0)
+    assert ratio == pytest.approx(1.0 / math.cos(math.radians(60.0)), rel=0.2)
+
+
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("sim_sonar")
@@ -206,7 +276,7 @@ def test_overrides_change_the_sonar(tmp_path: Path):
 
     summary = simulate(
         "quadrats", 3, tmp_path, max_pings=3, n_beams=128, range_resolution_m=0.02,
-        sonar_latency_s=0.05,
+        sonar_latency_s=0.05, sonar_latency_jitter_s=0.0,
     )  # fmt: skip
     pings = list(iter_pings(summary.sonar_path))
     assert [p.n_beams for p in pings] == [128] * 3
@@ -214,5 +284,33 @@ def test_overrides_change_the_sonar(tmp_path: Path):
     import json
 
     truth = json.loads(summary.truth_path.read_text())
+    assert truth["sonar"]["latency_s"] == 0.05  # the override wins the field day's draw
     for row in truth["pings"]:
         assert row["time"] - row["acquisition_time"] == pytest.approx(0.05, abs=1e-6)
+
+
+@pytest.mark.parametrize("rate_hz", [2.0, 5.0, 10.0])
+def test_ping_rates_and_the_latency_of_the_day(tmp_path: Path, rate_hz: float):
+    """2, 5 and 10 Hz all work; each ping's receive stamp is its acquisition plus the
+    drawn latency (0.03-0.12 s) and a small queueing tail."""
+    import json
+
+    from drivers.oculus.logfile import iter_pings
+    from drivers.oculus.protocol import PingRate
+
+    summary = simulate(
+        "quadrats", 4, tmp_path, duration_s=8.0, ping_rate_hz=rate_hz, n_beams=16,
+        range_resolution_m=0.1,
+    )  # fmt: skip
+    truth = json.loads(summary.truth_path.read_text())
+    pings = list(iter_pings(summary.sonar_path))
+    acquired = np.array([p["acquisition_time"] for p in truth["pings"]])
+    received = np.array([p["time"] for p in truth["pings"]])
+    assert len(pings) == len(acquired) == pytest.approx(6.5 * rate_hz, abs=1.0)
+    np.testing.assert_allclose(np.diff(acquired), 1.0 / rate_hz, atol=0.01)
+    assert [p.time for p in pings] == pytest.approx(received.tolist(), abs=1e-6)
+    assert {PingRate(cast(int, p.extra["ping_rate"])).hz for p in pings} == {rate_hz}
+    latency = truth["sonar"]["latency_s"]
+    assert 0.03 <= latency <= 0.12
+    delay = received - acquired - latency
+    assert np.all(delay >= 0.0) and np.all(delay <= 10 * truth["sonar"]["latency_jitter_mean_s"])

@@ -24,7 +24,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, An
     """The whole quadrats survey, with 128 beams to keep it quick."""
     out = tmp_path_factory.mktemp("sim_truth")
     summary = simulate("quadrats", 21, out, n_beams=128)
-    assert 400 <= summary.ping_count <= 600
+    assert 700 <= summary.ping_count <= 950  # under 3 minutes at 5 pings a second
     return out, json.loads((out / "truth.json").read_text())
 
 
@@ -39,7 +39,9 @@ def test_truth_header_and_site(survey):
     factors = Proj("EPSG:32618").get_factors(site["origin_lon_deg"], site["origin_lat_deg"])
     assert site["meridian_convergence_deg"] == pytest.approx(factors.meridian_convergence, abs=1e-6)
     assert 0.8 <= site["seabed_plane"]["depth_at_origin_m"] <= 1.25  # 3-4 ft of water
-    assert 50.0 < truth["time"]["duration_s"] < 70.0
+    # A slow boat: three 16 m lanes at 0.4 m/s, under 3 minutes.
+    assert 120.0 < truth["time"]["duration_s"] < 200.0
+    assert truth["vehicle"]["speed_mps"] == 0.4
 
 
 def test_quadrats_are_the_papers_array(survey):
@@ -79,21 +81,30 @@ def test_ping_truth_is_consistent(survey):
     _, truth = survey
     conv = truth["site"]["meridian_convergence_deg"]
     sonar = truth["sonar"]
+    mount = np.array([sonar["mount_x_m"], sonar["mount_y_m"], sonar["mount_z_m"]])
     for p in truth["pings"][::25]:
         grid = (p["heading_deg"] - conv) % 360.0
         assert (
             min(abs(grid - p["grid_heading_deg"]), 360 - abs(grid - p["grid_heading_deg"])) < 1e-3
         )
         assert p["east"] - p["local_east"] == truth["site"]["utm_origin_east"]
-        # The sonar sits mount_x_m along the grid heading from the antenna (level boat).
-        h = math.radians(p["grid_heading_deg"])
+        # The sonar sits at the mount offset from the antenna, turned by the attitude
+        # at acquisition (roll, pitch and heave of the chop).
+        h, pt, rl = (math.radians(p[k]) for k in ("grid_heading_deg", "pitch_deg", "roll_deg"))
+        offset = _rotation(h, pt, rl) @ mount
         de, dn = p["sonar_east"] - p["east"], p["sonar_north"] - p["north"]
-        expected = sonar["mount_x_m"] * math.sin(h), sonar["mount_x_m"] * math.cos(h)
-        assert math.hypot(de - expected[0], dn - expected[1]) < 0.02
-        assert 0.85 < p["altitude_m"] < 1.15
-        assert p["time"] == p["acquisition_time"]  # no latency by default
+        assert math.hypot(de - offset[1], dn - offset[0]) < 1e-3
+        antenna_depth = -(truth["vehicle"]["antenna_height_m"] + p["heave_m"])
+        assert p["sonar_depth_m"] == pytest.approx(antenna_depth + offset[2], abs=1e-3)
+        assert 0.8 < p["altitude_m"] < 1.2
+        # Received 0.03-0.12 s after it was taken (the field day's latency).
+        assert sonar["latency_s"] <= p["time"] - p["acquisition_time"] < sonar["latency_s"] + 0.05
     times = [p["time"] for p in truth["pings"]]
-    assert np.all(np.diff(times) > 0.08) and np.all(np.diff(times) < 0.12)
+    period = 1.0 / sonar["ping_rate_hz"]
+    assert np.all(np.diff(times) > 0.8 * period) and np.all(np.diff(times) < 1.2 * period)
+    # Roll and pitch of a small boat in a light chop: 2-3 degrees RMS, changing ping to ping.
+    roll = np.array([p["roll_deg"] for p in truth["pings"]])
+    assert 1.5 < np.std(roll) < 3.5 and np.std(np.diff(roll)) > 0.5
 
 
 def test_seabed_geotiff_is_the_truth_map(survey):
@@ -118,7 +129,7 @@ def test_seabed_geotiff_is_the_truth_map(survey):
         assert 60 < np.median(image) < 120
     with rasterio.open(out / "seabed_height.tif") as src:
         height = src.read(1) * src.scales[0]
-        # The bars stand 25-33 mm proud of sand rippled by +-8 mm.
+        # The bars stand 25-33 mm proud of the ripple crests they rest on.
         assert height[rows, cols].min() > 0.015
         assert np.median(height[rows, cols]) > 0.024
 
@@ -136,9 +147,18 @@ def test_site_toml_loads_and_matches_the_mount(survey):
     assert config.mavlink.imu_source == "raw"
 
 
+def _rotation(h: float, p: float, r: float) -> np.ndarray:
+    """Body FRD -> grid north/east/down for grid heading h, pitch p, roll r (radians)."""
+    rz = np.array([[math.cos(h), -math.sin(h), 0], [math.sin(h), math.cos(h), 0], [0, 0, 1]])
+    ry = np.array([[math.cos(p), 0, math.sin(p)], [0, 1, 0], [-math.sin(p), 0, math.cos(p)]])
+    rx = np.array([[1, 0, 0], [0, math.cos(r), -math.sin(r)], [0, math.sin(r), math.cos(r)]])
+    return rz @ ry @ rx
+
+
 def project(truth: dict[str, Any], ping: dict[str, Any], east, north):
     """(range m, bearing rad) in the sonar frame of ground points (UTM), from the truth
-    alone: sonar position, grid heading, roll, pitch, tilt and the seabed plane."""
+    alone: sonar position, grid heading, roll, pitch, tilt and the seabed plane; the
+    bearing of the line array's cone, asin(y / range)."""
     site, plane = truth["site"], truth["site"]["seabed_plane"]
     local_e = np.asarray(east) - site["utm_origin_east"]
     local_n = np.asarray(north) - site["utm_origin_north"]
@@ -150,13 +170,11 @@ def project(truth: dict[str, Any], ping: dict[str, Any], east, north):
          depth - ping["sonar_depth_m"]],
     )  # fmt: skip
     h, p, r = (math.radians(ping[k]) for k in ("grid_heading_deg", "pitch_deg", "roll_deg"))
-    rz = np.array([[math.cos(h), -math.sin(h), 0], [math.sin(h), math.cos(h), 0], [0, 0, 1]])
-    ry = np.array([[math.cos(p), 0, math.sin(p)], [0, 1, 0], [-math.sin(p), 0, math.cos(p)]])
-    rx = np.array([[1, 0, 0], [0, math.cos(r), -math.sin(r)], [0, math.sin(r), math.cos(r)]])
     t = math.radians(truth["sonar"]["tilt_deg"])
     tilt = np.array([[math.cos(t), 0, -math.sin(t)], [0, 1, 0], [math.sin(t), 0, math.cos(t)]])
-    s = (rz @ ry @ rx @ tilt).T @ v
-    return np.linalg.norm(v, axis=0), np.arctan2(s[1], s[0])
+    s = (_rotation(h, p, r) @ tilt).T @ v
+    slant = np.linalg.norm(v, axis=0)
+    return slant, np.arcsin(s[1] / slant)
 
 
 def test_frames_appear_in_the_pings_where_the_truth_puts_them(survey):

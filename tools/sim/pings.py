@@ -49,7 +49,9 @@ class PingPlan:
 
 
 def plan_pings(s: Scenario, motion: Motion, rng: np.random.Generator) -> PingPlan:
-    """Ping acquisition/receive times (UNIX s) and the end of the logs."""
+    """Ping acquisition/receive times (UNIX s) and the end of the logs: receive =
+    acquisition + ``sonar_latency_s`` + an exponential tail of mean
+    ``sonar_latency_jitter_s`` (capped at 10 means or 0.4 ping intervals)."""
     end = motion.end
     if s.duration_s is not None:
         end = min(end, motion.start + s.duration_s)
@@ -59,7 +61,11 @@ def plan_pings(s: Scenario, motion: Motion, rng: np.random.Generator) -> PingPla
         count = min(count, s.max_pings)
     k = np.arange(count)
     acquisition = first + k / s.ping_rate_hz + rng.normal(0.0, s.ping_jitter_s, count)
-    receive = acquisition + s.sonar_latency_s
+    # The sonar's processing, Ethernet and the driver: a fixed latency and a queueing
+    # tail, capped well inside the ping interval so that pings arrive in order.
+    tail = rng.exponential(s.sonar_latency_jitter_s, count) if s.sonar_latency_jitter_s else 0.0
+    cap = min(10.0 * s.sonar_latency_jitter_s, 0.4 / s.ping_rate_hz)
+    receive = acquisition + s.sonar_latency_s + np.minimum(tail, cap)
     if s.max_pings is not None and count == s.max_pings and count > 0:
         end = min(end, float(receive[-1]) + END_MARGIN_S)
     first_id = round(s.sonar_uptime_s * s.ping_rate_hz)

@@ -11,6 +11,12 @@ site's local frame: metres east/north of the site's UTM origin point (grid-align
 ``hectare``) to their records; ``resolve_scenario`` applies keyword overrides (any
 field, e.g. ``max_pings=20, n_beams=128, flavour="px4"``) and checks them.
 
+Each seed is a new field day: with ``randomise`` (the default) ``prepare_survey`` draws the
+sensor errors, latencies, waves and bedforms of the day within realistic ranges
+(``tools.sim.fieldday``), except the fields the caller set explicitly (``explicit``, which
+``resolve_scenario`` fills from the overrides). The values below are those defaults, used
+as they are when ``randomise`` is false.
+
 ``hectare`` is the 2-hour benchmark survey, meant for ``tools.sim.stream`` (``simulate``
 needs a cut for it: ``STREAM_ONLY``). Its seabed cells are 2 cm instead of 1 cm: the
 whole map is generated up front (about 1 s, 31 million cells, 155 MB kept, ~1.1 GB peak
@@ -44,6 +50,39 @@ class OysterBed:
     width_m: float
     bearing_deg: float
     clumps_per_m2: float
+    row_spacing_m: float = 0.0
+    """Above 0: the clumps are planted in rows along the bed's long side, this far apart
+    (metres), instead of scattered."""
+    clump_spacing_m: float = 0.0
+    """Spacing of the clumps along a row (metres; used with ``row_spacing_m``)."""
+
+
+@dataclass(frozen=True)
+class QuadratArray:
+    """One more 2 x 4 quadrat array (local frame, metres; grid bearing of its rows)."""
+
+    centre_east_m: float
+    centre_north_m: float
+    row_bearing_deg: float
+    pvc_side: str = "right"
+
+
+@dataclass(frozen=True)
+class Rack:
+    """A farm rack (trestle) lying on the bed: ``n_rows`` parallel steel bars
+    ``length_m`` long along grid bearing ``bearing_deg``, ``row_spacing_m`` apart, tied by
+    cross bars every ``tie_spacing_m`` (0: none). Local frame, metres; the bars are
+    ``bar_width_m`` wide and stand ``bar_height_m`` proud of the sand crests they rest on."""
+
+    centre_east_m: float
+    centre_north_m: float
+    bearing_deg: float
+    length_m: float
+    n_rows: int
+    row_spacing_m: float = 1.0
+    tie_spacing_m: float = 2.0
+    bar_width_m: float = 0.03
+    bar_height_m: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -80,15 +119,30 @@ class Scenario:
     sand_reflectivity: float = 0.34
     """Mean reflectivity of the sand (0..1; the truth GeoTIFF stores 255 * reflectivity)."""
     ripple_wavelength_m: float = 0.32
+    """Mean crest-to-crest distance of the main ripple train (metres)."""
     ripple_amplitude_m: float = 0.008
-    """Half the crest-to-trough height of the sand ripples (metres)."""
+    """Half the crest-to-trough height of the main sand ripples (metres)."""
     ripple_bearing_deg: float = 35.0
-    """Grid bearing of the ripple wave vector (crests run perpendicular to it)."""
+    """Mean grid bearing of the main train's wave vector (crests run perpendicular to it)."""
+    ripple_bend_deg: float = 12.0
+    """RMS turn of the crests across the site (degrees): the wave vector of each train is
+    ``k (u + grad warp)``, the warp a sum of long plane waves (``seabed`` doc); the local
+    wavelength varies by about half as much (a fraction ``tan(bend) / 2``)."""
+    ripple_bend_scale_m: float = 12.0
+    """Typical distance over which the crests turn (metres)."""
+    ripple2_wavelength_m: float = 0.75
+    """Mean wavelength of the second, superposed ripple train (metres)."""
+    ripple2_amplitude_m: float = 0.004
+    ripple2_bearing_deg: float = 110.0
+    n_mud_patches: int = 2
+    """Patches of smooth mud (little texture, almost no relief) on the survey area."""
+    mud_reflectivity: float = 0.24
     n_shell_patches: int = 6
     scattered_clumps_per_m2: float = 0.02
     """Oyster clumps scattered over the whole map (per square metre)."""
     oyster_beds: tuple[OysterBed, ...] = ()
     oysters_per_quadrat: int = 9
+    racks: tuple[Rack, ...] = ()
 
     # --- the 2 x 4 quadrat array (paper, Sec. IV-A-2) ---
     quadrat_centre_east_m: float = 0.0
@@ -97,6 +151,8 @@ class Scenario:
     """Grid bearing of the rows (the line through the frame centres of a row)."""
     quadrat_pvc_side: str = "right"
     """Which side of the row axis (looking along the row bearing) the PVC row lies on."""
+    quadrat_arrays: tuple[QuadratArray, ...] = ()
+    """Further arrays beyond the one above (which is array 0)."""
 
     # --- survey (lawnmower) and boat motion ---
     survey_centre_east_m: float = 0.0
@@ -104,35 +160,41 @@ class Scenario:
     lane_bearing_deg: float = 0.0
     """Grid bearing of the first lane; lanes alternate direction; the next lane lies to the
     right of the first."""
-    lane_length_m: float = 13.0
+    lane_length_m: float = 16.0
+    """Lane length (metres): at 0.4 m/s a neighbouring lane sees the same seabed again
+    about 15-90 s later."""
     lane_spacing_m: float = 4.0
     n_lanes: int = 3
     run_in_m: float = 2.0
     """Straight approach before the first lane and after the last (metres)."""
     turn_radius_m: float = 2.0
-    speed_mps: float = 1.0
+    speed_mps: float = 0.4
+    """Survey speed through the water (m/s): a small survey boat runs 0.3-0.5 m/s."""
     accel_time_s: float = 4.0
     """Time to reach the survey speed from rest, and to stop at the end (seconds)."""
     speed_wobble: float = 0.04
     """Relative standard deviation of the speed about its set point."""
     cross_track_m: float = 0.08
-    """Standard deviation of the autopilot's cross-track error (metres)."""
+    """Standard deviation of the autopilot's cross-track error (metres; drawn 0.04-0.15)."""
     current_mps: float = 0.0
     """Water current speed (m/s); the boat crabs into it to hold its track."""
     current_toward_deg: float = 90.0
     """Grid bearing the current flows toward."""
     yaw_wobble_deg: float = 2.0
-    """Standard deviation of the heading oscillation about the crab-corrected course."""
-    roll_deg: float = 1.5
-    """Standard deviation of the wave-induced roll."""
-    pitch_deg: float = 1.0
-    """Standard deviation of the wave-induced pitch."""
+    """Standard deviation of the heading oscillation about the crab-corrected course
+    (drawn 1-3)."""
+    roll_deg: float = 2.5
+    """Standard deviation of the wave-induced roll (a small boat in a light chop: drawn
+    2-3)."""
+    pitch_deg: float = 2.2
+    """Standard deviation of the wave-induced pitch (drawn 2-3)."""
     trim_deg: float = 1.0
     """Bow-up pitch at survey speed."""
-    heave_m: float = 0.015
-    """Standard deviation of the wave-induced heave."""
-    wave_period_s: float = 2.2
-    """Dominant period of the short chop."""
+    heave_m: float = 0.03
+    """Standard deviation of the wave-induced heave (metres; drawn 0.02-0.05)."""
+    wave_period_s: float = 2.5
+    """Dominant period of the short chop (seconds; drawn 2-3); the roll, pitch and heave
+    are sums of sinusoids of 0.7-1.6 times it, kept within 1.5-4 s, random phases."""
     antenna_height_m: float = 0.10
     """Height of the GPS antenna (the vehicle reference point) above the waterline."""
 
@@ -148,11 +210,15 @@ class Scenario:
     """-3 dB full width of the two-way vertical beam pattern."""
     range_m: float = 5.0
     range_resolution_m: float = 0.01
-    ping_rate_hz: float = 10.0
+    ping_rate_hz: float = 5.0
+    """Pings per second (the Oculus' 2, 5, 10, 15 or 40 Hz; any rate 0.5-40 works)."""
     ping_jitter_s: float = 0.002
     """Standard deviation of the sonar's ping interval jitter."""
-    sonar_latency_s: float = 0.0
-    """Delay from the ping's acquisition to its receipt by the boat computer."""
+    sonar_latency_s: float = 0.07
+    """Delay from the ping's acquisition to its receive stamp on the boat computer
+    (seconds: the sonar's processing, Ethernet, the driver; drawn 0.03-0.12)."""
+    sonar_latency_jitter_s: float = 0.004
+    """Mean of the exponential random part added to that delay, per ping (seconds)."""
     mount_x_m: float = -0.45
     mount_y_m: float = 0.0
     mount_z_m: float = 0.3
@@ -188,24 +254,54 @@ class Scenario:
     gps_rate_hz: float = 2.0
     heading_rate_hz: float = 2.0
     """Rate of ATTITUDE, GLOBAL_POSITION_INT and VFR_HUD (the compass-like heading)."""
-    gps_bias_sigma_m: float = 1.0
-    """Standard deviation of the slowly wandering GPS bias, per axis (first-order
-    Gauss-Markov)."""
-    gps_bias_tau_s: float = 300.0
-    gps_noise_m: float = 0.25
-    """White GPS noise per axis (metres)."""
+    gps_bias_sigma_m: float = 1.2
+    """Standard deviation of the wandering GPS error, per axis (metres; first-order
+    Gauss-Markov; a u-blox M8N with a patch antenna: drawn 1.0-1.5)."""
+    gps_bias_tau_s: float = 45.0
+    """Correlation time of that error (seconds; drawn 20-90)."""
+    gps_noise_m: float = 0.6
+    """White GPS noise per axis (metres; drawn 0.5-0.8)."""
+    gps_lag_s: float = 0.15
+    """Age of a fix at its stamp: it reports where the antenna was this long before
+    (seconds; the receiver's solution and serial latency: drawn 0.1-0.2)."""
+    gps_outage_start_s: float | None = None
+    """A GNSS outage (no fix) starting this long after the log start (seconds, at least
+    1); None: no outage."""
+    gps_outage_duration_s: float = 20.0
     gps_vertical_sigma_m: float = 1.5
     compass_bias_deg: float = 2.0
-    """Constant part of the heading bias (degrees)."""
+    """Constant part of the heading error (degrees: mounting misalignment and the
+    uncompensated field; drawn +-1-5)."""
+    compass_deviation_1_deg: float = 1.0
+    """Amplitude of the one-cycle (hard-iron) deviation ``sin(psi + phase_1)`` of the
+    magnetic heading psi (degrees; drawn 0.5-2)."""
+    compass_deviation_1_phase_deg: float = 30.0
+    compass_deviation_2_deg: float = 0.8
+    """Amplitude of the two-cycle (soft-iron) deviation ``sin(2 psi + phase_2)``
+    (degrees; drawn 0.5-2)."""
+    compass_deviation_2_phase_deg: float = 200.0
     compass_bias_wander_deg: float = 0.3
+    """Slow wander of the bias (degrees; Gauss-Markov, ``compass_bias_tau_s``)."""
     compass_bias_tau_s: float = 600.0
-    compass_noise_deg: float = 1.5
+    compass_gm_sigma_deg: float = 1.0
+    """Correlated heading noise of the autopilot's fused heading (degrees; Gauss-Markov:
+    drawn 0.5-1.5), not in the raw magnetometer."""
+    compass_gm_tau_s: float = 8.0
+    """Its correlation time (seconds; drawn 2-20)."""
+    compass_noise_deg: float = 0.2
+    """White noise of the reported heading (degrees; drawn 0.1-0.3)."""
     attitude_noise_deg: float = 0.3
     """Noise of the reported roll and pitch (degrees)."""
     accel_noise_mps2: float = 0.08
     accel_bias_sigma_mps2: float = 0.05
     gyro_noise_dps: float = 0.15
+    gyro_bias_x_dps: float = 0.12
+    """Gyro bias left after the autopilot's boot calibration, FRD x (degrees/s; drawn
+    +-0.05-0.3 per axis)."""
+    gyro_bias_y_dps: float = -0.08
+    gyro_bias_z_dps: float = 0.15
     gyro_bias_sigma_dps: float = 0.2
+    """Typical size of the gyro bias: the scale of its slow wander (``imu_bias_wander``)."""
     imu_bias_wander: float = 0.2
     """Slow wander of each IMU bias, as a fraction of its sigma (Gauss-Markov, 300 s)."""
     mag_noise_mgauss: float = 3.0
@@ -223,6 +319,14 @@ class Scenario:
     duration_s: float | None = None
     max_pings: int | None = None
 
+    # --- the field day ---
+    randomise: bool = True
+    """Draw the day's values (``tools.sim.fieldday.FIELD_DAY``) from the seed; false: the
+    values above, exactly."""
+    explicit: tuple[str, ...] = ()
+    """Fields the caller set (``resolve_scenario`` records its overrides here): never
+    drawn."""
+
     @property
     def declination_rad(self) -> float:
         return math.radians(self.declination_deg)
@@ -237,7 +341,8 @@ QUADRATS = Scenario(
     name="quadrats",
     description=(
         "The paper's test site: a 2 x 4 array of aluminium and PVC quadrats on rippled sand "
-        "with a few oysters, surveyed with three 13 m lanes (about 15 m x 15 m)."
+        "with a few oysters and mud patches, surveyed with three 16 m lanes at 0.4 m/s and "
+        "5 pings/s (about 15 m x 15 m, under 3 minutes)."
     ),
     origin_lat_deg=CHESAPEAKE_HORN_POINT[0],
     origin_lon_deg=CHESAPEAKE_HORN_POINT[1],
@@ -247,18 +352,19 @@ QUADRATS_CURRENT = dataclasses.replace(
     QUADRATS,
     name="quadrats-current",
     description=(
-        "The quadrats survey in a 0.16 m/s cross-current: the boat crabs about 9 degrees, "
+        "The quadrats survey in a 0.064 m/s cross-current: the boat crabs about 9 degrees, "
         "so its heading differs from its course over ground."
     ),
-    current_mps=0.16,
+    current_mps=0.064,
     current_toward_deg=90.0,
 )
 
 FARM = Scenario(
     name="farm",
     description=(
-        "An on-bottom oyster farm, 40 m x 30 m of lanes: oyster beds and scattered clumps, "
-        "shell patches, ripples, and the quadrat array inside."
+        "An on-bottom oyster farm, 40 m x 30 m of lanes at 0.4 m/s (about 16 minutes): "
+        "oyster beds (one planted in rows), scattered clumps, two racks of bars 1 m apart, "
+        "shell and mud patches, two ripple trains, and three quadrat arrays."
     ),
     origin_lat_deg=CHOPTANK_FARM[0],
     origin_lon_deg=CHOPTANK_FARM[1],
@@ -269,16 +375,25 @@ FARM = Scenario(
     ripple_wavelength_m=0.28,
     ripple_bearing_deg=120.0,
     n_shell_patches=40,
+    n_mud_patches=5,
     scattered_clumps_per_m2=0.08,
     oyster_beds=(
         OysterBed(-12.0, 6.0, 14.0, 6.0, 15.0, 3.0),
-        OysterBed(6.0, 10.0, 12.0, 5.0, 100.0, 2.5),
+        OysterBed(6.0, 10.0, 12.0, 5.0, 100.0, 2.5, row_spacing_m=1.0, clump_spacing_m=0.5),
         OysterBed(-8.0, -8.0, 10.0, 7.0, 60.0, 2.0),
         OysterBed(14.0, -9.0, 9.0, 6.0, 170.0, 3.5),
+    ),
+    racks=(
+        Rack(-4.0, -1.0, 90.0, 10.0, 5),
+        Rack(2.0, -12.0, 0.0, 8.0, 4, tie_spacing_m=1.5),
     ),
     quadrat_centre_east_m=4.0,
     quadrat_centre_north_m=-1.0,
     quadrat_row_bearing_deg=70.0,
+    quadrat_arrays=(
+        QuadratArray(-3.0, 8.0, 0.0),
+        QuadratArray(16.0, 2.0, 135.0, pvc_side="left"),
+    ),
     lane_bearing_deg=90.0,
     lane_length_m=40.0,
     lane_spacing_m=4.0,
@@ -321,6 +436,7 @@ HECTARE = Scenario(
     ripple_wavelength_m=0.30,
     ripple_bearing_deg=60.0,
     n_shell_patches=150,
+    n_mud_patches=12,
     scattered_clumps_per_m2=0.05,
     oyster_beds=_lease_beds(),
     quadrat_centre_east_m=12.0,
@@ -332,6 +448,7 @@ HECTARE = Scenario(
     n_lanes=34,
     turn_radius_m=1.4,
     speed_mps=0.5,
+    ping_rate_hz=10.0,
     current_mps=0.05,
     current_toward_deg=200.0,
 )
@@ -378,10 +495,11 @@ def resolve_scenario(name: str, **overrides: Any) -> Scenario:
     hints = typing.get_type_hints(Scenario)
     checked: dict[str, Any] = {}
     for key, value in overrides.items():
-        if key not in hints or key in ("name", "description"):
+        if key not in hints or key in ("name", "description", "explicit"):
             raise SeamapError(f"simulate: unknown override {key!r}")
         checked[key] = _check_value(key, value, hints[key])
-    scenario = dataclasses.replace(base, **checked)
+    pinned = tuple(sorted(set(base.explicit) | set(checked)))
+    scenario = dataclasses.replace(base, **checked, explicit=pinned)
     _validate(scenario)
     return scenario
 
@@ -393,7 +511,7 @@ def parse_overrides(texts: dict[str, str]) -> dict[str, Any]:
     hints = typing.get_type_hints(Scenario)
     values: dict[str, Any] = {}
     for key, text in texts.items():
-        if key not in hints or key in ("name", "description", "oyster_beds"):
+        if key not in hints or key in _NOT_FROM_TEXT:
             raise SeamapError(f"simulate: unknown override {key!r}")
         args = typing.get_args(hints[key])
         optional = type(None) in args
@@ -412,6 +530,9 @@ def parse_overrides(texts: dict[str, str]) -> dict[str, Any]:
     return values
 
 
+_NOT_FROM_TEXT = ("name", "description", "explicit", "oyster_beds", "racks", "quadrat_arrays")
+
+
 def _validate(s: Scenario) -> None:
     problems = []
     if s.flavour not in FLAVOURS:
@@ -428,8 +549,16 @@ def _validate(s: Scenario) -> None:
         problems.append(f"duration_s {s.duration_s} must be positive")
     if s.current_mps < 0 or s.current_mps >= 0.8 * s.speed_mps:
         problems.append(f"current_mps {s.current_mps} must be in [0, 0.8 * speed_mps)")
-    if s.sonar_latency_s < 0 or s.gps_bias_sigma_m < 0:
-        problems.append("sonar_latency_s and gps_bias_sigma_m must not be negative")
+    if min(s.sonar_latency_s, s.sonar_latency_jitter_s, s.gps_bias_sigma_m, s.gps_noise_m) < 0:
+        problems.append("latencies and GPS error sizes must not be negative")
+    if not 0.0 <= s.gps_lag_s < 1.0 or s.gps_bias_tau_s <= 0 or s.compass_gm_tau_s <= 0:
+        problems.append("gps_lag_s must be in [0, 1) and the correlation times positive")
+    if s.gps_outage_start_s is not None and (
+        s.gps_outage_start_s < 1.0 or s.gps_outage_duration_s <= 0
+    ):
+        problems.append("a GNSS outage needs a start >= 1 s (after a fix) and a duration")
+    if s.wave_period_s <= 0 or s.ripple_wavelength_m <= 0 or s.ripple2_wavelength_m <= 0:
+        problems.append("wave periods and ripple wavelengths must be positive")
     if s.lane_spacing_m <= 0 or s.n_lanes < 1 or s.lane_length_m <= 0:
         problems.append("the lawnmower needs n_lanes >= 1 and positive lane length and spacing")
     if not 0.0 < s.tilt_deg < 60.0:
@@ -442,4 +571,7 @@ def scenario_dict(s: Scenario) -> dict[str, Any]:
     """The scenario as JSON-ready data (for truth.json)."""
     data = dataclasses.asdict(s)
     data["oyster_beds"] = [dataclasses.asdict(b) for b in s.oyster_beds]
+    data["racks"] = [dataclasses.asdict(r) for r in s.racks]
+    data["quadrat_arrays"] = [dataclasses.asdict(a) for a in s.quadrat_arrays]
+    data["explicit"] = list(s.explicit)
     return data

@@ -1,41 +1,55 @@
 """Forward model of an Oculus M1200d ping over the seabed.
 
 Frames. The sonar frame is FRD-like: x along the boresight, y to starboard, z completing
-a right-handed frame (down when level). A beam at bearing theta (positive to starboard)
-and elevation phi (positive below the sonar's x-y plane) looks along
-``d = (cos phi cos theta, cos phi sin theta, sin phi)``. The sonar frame is the body
-frame (FRD) yawed by ``mount_yaw`` and pitched down by ``tilt``:
-``R_body_sonar = Rz(mount_yaw) Ry(-tilt)``. The world frame is local grid
-north/east/down (metres; down from the still water surface).
+a right-handed frame (down when level). The sonar frame is the body frame (FRD) yawed by
+``mount_yaw`` and pitched down by ``tilt``: ``R_body_sonar = Rz(mount_yaw) Ry(-tilt)``.
+The world frame is local grid north/east/down (metres; down from the still water
+surface).
+
+Beams. The Oculus is a line array along the sonar's y axis: beamforming resolves only the
+angle to that axis, so a beam at bearing theta (positive to starboard) is a CONE about
+it, the points p with ``sin theta = p_y / |p|``. A point of the beam at slant range r is
+``p = r (cos theta cos psi, sin theta, cos theta sin psi)``, psi the angle about the
+array axis (0 on the boresight plane x-y, positive down); the vertical beam pattern is a
+function of psi. (Not the spherical azimuth/elevation model, ``atan2(p_y, p_x) = theta``:
+the two agree on the boresight plane, but a wide beam's cone bends down towards the
+sonar: at 60 degrees and 2.5 m slant range, on a bed 1 m below a sonar tilted 15
+degrees, they put the echo 20-30 cm apart, and the lit swath starts twice as far out at
+60 degrees as ahead.)
 
 Geometry (per ping, vectorised over range bins x beams). The echo at slant range r in
-beam theta comes from where the beam's vertical arc meets the seabed's mean plane
-``m . p = D`` (m = (-slope_north, -slope_east, 1)). With w = R_world_sonar^T m,
-``a(theta) = w_x cos theta + w_y sin theta``, ``b = w_z``, ``c = D - m . S`` (S the sonar
-position): ``a cos phi + b sin phi = c / r``, so
-``phi = asin(c / (r rho)) - atan2(a, b)``, rho = hypot(a, b). Bins with
-``c / (r rho) > 1`` are nearer than the seabed: water column. The grazing angle on the
-plane is ``asin(h / r)`` with h the sonar's perpendicular altitude ``c / |m|``.
+beam theta comes from where the beam's cone meets the seabed: the mean plane ``m . P =
+D`` (m = (-slope_north, -slope_east, 1)) raised by the relief z there, ``m . P = D -
+z |m|``. With w = R_world_sonar^T m and c = D - z |m| - m . S (S the sonar position),
+``r (cos theta (w_x cos psi + w_z sin psi) + w_y sin theta) = c``, so
+``psi = asin((c / r - w_y sin theta) / rho) - atan2(w_x, w_z)``,
+``rho = cos theta hypot(w_x, w_z)``: the near (front) solution. Bins where the argument
+leaves [-1, 1] do not reach the seabed (water column). The relief enters by one
+fixed-point step (the height under the mean-plane footprint lifts the plane, and the
+echo is placed where the cone meets the lifted plane), so raised objects lean towards
+the sonar (layover) as they do in real images. The grazing angle on the plane is
+``asin(h / r)`` with h the sonar's perpendicular altitude ``(D - m . S) / |m|``.
 
 Echo intensity (linear, after the sonar's TVG), per bin:
-``reflectivity x Lambert(local grazing) x vertical beam pattern(phi) x visibility``,
+``reflectivity x Lambert(local grazing) x vertical beam pattern(psi) x visibility``,
 blurred across beams by the horizontal beamwidth, times speckle (gamma, mean 1,
 correlated across neighbouring beams), times the TVG's residual range trend, plus an
 exponential noise floor and a near-field ring-down. Local grazing = grazing + the slope
 of the height map along the beam; visibility = 0 in acoustic shadows, found along each
-beam with a running minimum of the depression tangent ``(h - z) / ground_range`` (a
-point is hidden when a nearer point pokes above its line of sight). Then each row gets
-its gain (TVG applied in steps, a fixed per-row error, the ping's gain-assist level: the
-ring artefacts), gamma correction ``(I / full_scale) ** (gamma / 255)`` and 8 bits.
+beam with a running minimum of psi (a point is hidden when a nearer point of its beam
+is seen at a smaller depression angle about the array axis: it pokes above the line of
+sight). Then each row gets its gain (TVG applied in steps, a fixed per-row error, the
+ping's gain-assist level: the ring artefacts), gamma correction
+``(I / full_scale) ** (gamma / 255)`` and 8 bits.
 
 The per-row gain words sent with the ping are ``round(65536 * g)``, g the linear intensity
 gain applied to the row relative to the sonar's nominal TVG law (so 65536 = nominal).
 The residual trend (``tvg_residual_exponent``) is NOT in the gain words: the sonar does
 not know its TVG is off.
 
-Simplified: the vertical fan is the standard spherical (azimuth/elevation) model, not
-the cone of a line array; echoes are placed at the mean plane's range (no layover from
-object heights, a few millimetres here); multipath and surface echoes are left out.
+Simplified: one fixed-point step of layover (a multi-valued range, where a tall object's
+top and the bed behind it share a bin, keeps the bed behind); multipath and surface
+echoes are left out.
 """
 
 from __future__ import annotations
@@ -174,42 +188,64 @@ def sonar_pose(antenna_ned: FloatArray, body_to_world: FloatArray, model: SonarM
 
 @dataclass(frozen=True)
 class Footprint:
-    """Where each (range, beam) bin meets the seabed's mean plane (float32 arrays)."""
+    """Where each (range, beam) bin's cone meets the seabed (float32 arrays, local grid
+    north/east metres)."""
 
     north: F32Array
     east: F32Array
     elevation: F32Array
-    """Elevation phi of the echo in the sonar frame (radians, positive down)."""
+    """psi, the angle of the echo about the array axis (radians, 0 on the sonar's x-y
+    plane, positive down)."""
     valid: npt.NDArray[np.bool_]
-    """False where the bin is nearer than the seabed (water column)."""
+    """False where the bin does not reach the seabed (water column)."""
     altitude: float
     """Perpendicular distance from the sonar to the mean plane (m)."""
 
 
-def footprint(model: SonarModel, pose: SonarPose, seabed: Seabed) -> Footprint:
-    """Intersect every bin's vertical arc with the mean plane (see the module doc)."""
+def footprint(
+    model: SonarModel,
+    pose: SonarPose,
+    seabed: Seabed,
+    lift_m: F32Array | None = None,
+    angles: bool = True,
+) -> Footprint:
+    """Intersect every bin's beam cone with the mean plane, or with the plane raised by
+    ``lift_m`` (metres above it, per bin; broadcastable to (ranges, beams)): see the
+    module doc. ``angles`` False leaves ``elevation`` empty (positions only)."""
     m = np.array([-seabed.slope_north, -seabed.slope_east, 1.0])
     m_norm = float(np.linalg.norm(m))
     s = pose.position_ned
-    c = seabed.depth0 - float(m @ s)
+    c0 = seabed.depth0 - float(m @ s)
     w = pose.rotation.T @ m
+    alpha = math.atan2(w[0], w[2])
     cos_b = np.cos(model.bearings_rad)
     sin_b = np.sin(model.bearings_rad)
-    a = w[0] * cos_b + w[1] * sin_b
-    rho = np.hypot(a, w[2])
-    alpha = np.arctan2(a, w[2])
+    rho = (cos_b * math.hypot(w[0], w[2])).astype(np.float32)
     r = model.ranges_m.astype(np.float32)[:, None]
-    q = np.float32(c) / (r * rho.astype(np.float32)[None, :])
-    valid = q < 1.0
-    phi = np.arcsin(np.minimum(q, np.float32(1.0))) - alpha.astype(np.float32)[None, :]
-    rc = r * np.cos(phi)
-    rs = r * np.sin(phi)
+    c = np.float32(c0) if lift_m is None else np.float32(c0) - lift_m * np.float32(m_norm)
+    q = c / r - (w[1] * sin_b).astype(np.float32)
+    q /= rho
+    valid = np.abs(q) < np.float32(1.0)
+    np.clip(q, np.float32(-1.0), np.float32(1.0), out=q)
+    # psi = asin(q) - alpha, so cos psi = k cos alpha + q sin alpha and sin psi =
+    # q cos alpha - k sin alpha with k = sqrt(1 - q^2): p / r = (cos theta cos psi,
+    # sin theta, cos theta sin psi) turned into the world is k a + q b + d per beam.
+    k = np.sqrt(np.float32(1.0) - q * q)
     rot = pose.rotation
-    a_n = (rot[0, 0] * cos_b + rot[0, 1] * sin_b).astype(np.float32)
-    a_e = (rot[1, 0] * cos_b + rot[1, 1] * sin_b).astype(np.float32)
-    north = np.float32(s[0]) + rc * a_n[None, :] + rs * np.float32(rot[0, 2])
-    east = np.float32(s[1]) + rc * a_e[None, :] + rs * np.float32(rot[1, 2])
-    return Footprint(north, east, phi, valid, c / m_norm)
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    out = []
+    for axis, origin in ((0, s[0]), (1, s[1])):
+        a = ((rot[axis, 0] * ca - rot[axis, 2] * sa) * cos_b).astype(np.float32)
+        b = ((rot[axis, 0] * sa + rot[axis, 2] * ca) * cos_b).astype(np.float32)
+        d = (rot[axis, 1] * sin_b).astype(np.float32)
+        coord = k * a
+        coord += q * b
+        coord += d
+        coord *= r
+        coord += np.float32(origin)
+        out.append(coord)
+    psi = np.arcsin(q) - np.float32(alpha) if angles else np.zeros((0, 0), np.float32)
+    return Footprint(out[0], out[1], psi, valid, c0 / m_norm)
 
 
 def _f32(x: object) -> F32Array:
@@ -225,25 +261,38 @@ def _running_min(values: F32Array) -> F32Array:
     return out
 
 
+def _pixels(seabed: Seabed, fp: Footprint) -> tuple[F32Array, F32Array]:
+    """Fractional (col, row) raster coordinates of the footprint (float32)."""
+    inv = np.float32(1.0 / seabed.resolution)
+    col = (fp.east - np.float32(seabed.west)) * inv - np.float32(0.5)
+    row = (np.float32(seabed.north) - fp.north) * inv - np.float32(0.5)
+    return col, row
+
+
 def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32Array, F32Array]:
     """The noiseless echo intensity (linear, after an ideal TVG) per (range, beam), and
     the range column (n_ranges, 1), both float32."""
-    fp = footprint(model, pose, seabed)
-    col, row = seabed.pixel(fp.east.astype(np.float64), fp.north.astype(np.float64))
-    col32, row32 = _f32(col), _f32(row)
     border = cv2.BORDER_REPLICATE
-    refl = _f32(cv2.remap(seabed.reflectivity, col32, row32, cv2.INTER_LINEAR, borderMode=border))
-    z = _f32(cv2.remap(seabed.height, col32, row32, cv2.INTER_LINEAR, borderMode=border))
+    # Layover, one fixed-point step: the relief under the mean-plane footprint lifts the
+    # plane the cone is cut with.
+    col, row = _pixels(seabed, footprint(model, pose, seabed, angles=False))
+    lift = _f32(cv2.remap(seabed.height, col, row, cv2.INTER_LINEAR, borderMode=border))
+    fp = footprint(model, pose, seabed, lift)
+    col, row = _pixels(seabed, fp)
+    refl = _f32(cv2.remap(seabed.reflectivity, col, row, cv2.INTER_LINEAR, borderMode=border))
+    z = _f32(cv2.remap(seabed.height, col, row, cv2.INTER_LINEAR, borderMode=border))
+    del col, row, lift
 
     r = _f32(model.ranges_m)[:, None]
     h = np.float32(fp.altitude)
-    ground = _f32(np.broadcast_to(np.sqrt(np.maximum(r * r - h * h, np.float32(1e-6))), z.shape))
+    ground = np.sqrt(np.maximum(r * r - h * h, np.float32(1e-6)))
 
-    # Acoustic shadows: a bin is hidden when a nearer bin of its beam subtends a smaller
-    # depression angle (its top pokes above this bin's line of sight).
-    tan_dep = _f32(np.where(fp.valid, (h - z) / ground, _NO_GROUND))
-    nearest = _running_min(tan_dep)
-    visibility = np.clip(1.0 - (tan_dep - nearest) * ground / _SHADOW_SOFTNESS_M, 0.0, 1.0)
+    # Acoustic shadows: a bin is hidden when a nearer bin of its beam is seen at a smaller
+    # angle psi (its top pokes above this bin's line of sight).
+    psi = np.where(fp.valid, fp.elevation, _NO_GROUND)
+    below = psi - _running_min(psi)
+    below *= r
+    visibility = np.clip(1.0 - below * np.float32(1.0 / _SHADOW_SOFTNESS_M), 0.0, 1.0)
 
     # Local grazing angle: the plane's grazing angle plus the slope of the relief along
     # the beam (faces towards the sonar light up, faces away go dark).
@@ -265,6 +314,27 @@ def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32A
     return _f32(cv2.GaussianBlur(echo, (0, 0), sigmaX=blur, sigmaY=0.5)), r
 
 
+def _speckle(rng: np.random.Generator, shape_param: float, size: tuple[int, int]) -> F32Array:
+    """Gamma(shape_param) / shape_param speckle (mean 1). A half-integer shape is drawn as
+    a sum of exponentials, plus for the half ``E sin^2(pi U / 2)`` (Gamma(1/2) = Gamma(1) x
+    Beta(1/2, 1/2), and Beta(1/2, 1/2) is the arcsine law): the same distribution as
+    numpy's gamma sampler, faster."""
+    twice = round(2 * shape_param)
+    if abs(2 * shape_param - twice) > 1e-9 or not 1 <= twice <= 6:
+        out = rng.standard_gamma(shape_param, size, dtype=np.float32)
+    else:
+        out = np.zeros(size, np.float32)
+        for _ in range(twice // 2):
+            out += rng.standard_exponential(size, dtype=np.float32)
+        if twice % 2:
+            arc = np.sin(rng.random(size, dtype=np.float32) * np.float32(math.pi / 2))
+            arc *= arc
+            arc *= rng.standard_exponential(size, dtype=np.float32)
+            out += arc
+    out *= np.float32(1.0 / shape_param)
+    return out
+
+
 def render_ping(
     model: SonarModel,
     pose: SonarPose,
@@ -276,8 +346,7 @@ def render_ping(
     noiseless mean image (no speckle, no noise floor) for geometry checks."""
     echo, r = _mean_echo(model, pose, seabed)
     if rng is not None:
-        speckle = rng.standard_gamma(model.speckle_shape, echo.shape, dtype=np.float32)
-        speckle *= np.float32(1.0 / model.speckle_shape)
+        speckle = _speckle(rng, model.speckle_shape, echo.shape)
         # Beams overlap (0.6 degree beams ~0.25 degree apart): neighbours share speckle.
         echo *= _f32(cv2.GaussianBlur(speckle, (0, 0), sigmaX=0.7, sigmaY=0.01))
         noise = rng.standard_exponential(echo.shape, dtype=np.float32)

@@ -104,6 +104,7 @@ class SimStream:
     """
 
     scenario: Scenario
+    """The scenario of the field day (the seed's drawn values in place)."""
     seed: int
     events: Iterator[Event]
     site_config: SiteConfig
@@ -241,6 +242,7 @@ def survey_events(scenario: str, seed: int, **overrides: Any) -> SimStream:
     for a bad name, key or value."""
     s = resolve_scenario(scenario, **overrides)
     setup = prepare_survey(s, seed)
+    s = setup.scenario  # the field day's
     source = setup.ping_source()
     autopilot = "px4" if s.flavour == "px4" else "ardupilot"
     # The sensor tracks and the dense motion are dropped once the tables hold what the

@@ -1,8 +1,9 @@
 """``simulate``: one simulated survey, from a scenario and a seed to an output folder.
 
-Order of work: the site frame; the boat's true motion; the ping times and the time span
+Order of work: the field day (the seed's draws of the sensor errors, waves, bedforms:
+``fieldday``); the site frame; the boat's true motion; the ping times and the time span
 of the logs (cut by ``duration_s`` / ``max_pings``); the seabed under everything the sonar
-can reach; the sensor tracks; then the files (see ``writer.py`` for truth.json).
+can reach; the sensor tracks; then the files (see ``truth.py`` for truth.json).
 ``prepare_survey`` does everything before the files and gives a ``SurveySetup``, which
 renders the pings (``pings.PingSource``) and plans the tlog (``tlog.plan_tlog``): the file
 writer here and the in-process stream (``stream.survey_events``) share that one path.
@@ -26,6 +27,7 @@ import numpy.typing as npt
 from drivers.oculus.logfile import OculusLogWriter
 from seamap.errors import SeamapError
 from tools.sim import writer
+from tools.sim.fieldday import draw_field_day
 from tools.sim.pings import (
     PingFrames,
     PingPlan,
@@ -37,7 +39,7 @@ from tools.sim.pings import (
 )
 from tools.sim.scenarios import STREAM_ONLY, Scenario, resolve_scenario
 from tools.sim.seabed import Seabed, generate_seabed
-from tools.sim.sensors import simulate_gps, simulate_heading, simulate_imu
+from tools.sim.sensors import compass_errors, simulate_gps, simulate_heading, simulate_imu
 from tools.sim.site import SiteFrame
 from tools.sim.sonar import SonarModel
 from tools.sim.tlog import NavStreams, TlogPlan, plan_tlog, write_tlog
@@ -58,6 +60,8 @@ _STREAMS = {
     "tlog": 8,
     "pings": 9,
     "sonar_attitude": 10,
+    "field_day": 11,
+    "compass": 12,
 }
 
 
@@ -120,9 +124,10 @@ def _seabed_bounds(s: Scenario, motion: Motion) -> tuple[float, float, float, fl
 
 @dataclass(frozen=True)
 class SurveySetup:
-    """A survey before any file: the scenario, the site frame, the boat's true motion, the
-    ping plan, the seabed, the sonar model and the true frames at the pings. ``start`` and
-    ``end`` bound the logs (UNIX s)."""
+    """A survey before any file: the scenario of the field day (the drawn values in
+    place), the site frame, the boat's true motion, the ping plan, the seabed, the sonar
+    model and the true frames at the pings; ``field_day`` records the draws (truth.json's
+    section). ``start`` and ``end`` bound the logs (UNIX s)."""
 
     scenario: Scenario
     seed: int
@@ -133,6 +138,7 @@ class SurveySetup:
     seabed: Seabed
     model: SonarModel
     frames: PingFrames
+    field_day: dict[str, Any] = field(default_factory=dict)
 
     @property
     def start(self) -> float:
@@ -165,13 +171,15 @@ class SurveySetup:
         imu_rng = component_rng(seed, "imu")
         imu_times = np.arange(start + 0.004, end, 1.0 / s.imu_rate_hz)
         imu_times = imu_times + imu_rng.uniform(-0.0005, 0.0005, len(imu_times))
+        compass = compass_errors(s, motion, component_rng(seed, "compass"))
         return NavStreams(
             gps=simulate_gps(s, site, motion, gps_times, component_rng(seed, "gps")),
             heading=simulate_heading(
-                s, site, motion, heading_times, component_rng(seed, "heading")
+                s, site, motion, heading_times, component_rng(seed, "heading"), compass
             ),
-            imu=simulate_imu(s, site, motion, imu_times, imu_rng),
+            imu=simulate_imu(s, site, motion, imu_times, imu_rng, compass),
             motion=motion,
+            compass=compass,
         )
 
     def tlog_plan(self, streams: NavStreams) -> TlogPlan:
@@ -181,14 +189,17 @@ class SurveySetup:
 
 
 def prepare_survey(s: Scenario, seed: int) -> SurveySetup:
-    """Everything before the files: site, motion, ping times, seabed, sonar, frames."""
+    """Everything before the files: the field day (``s`` with the seed's draws, unless
+    ``s.randomise`` is false; fields in ``s.explicit`` keep their values), site, motion,
+    ping times, seabed, sonar, frames."""
+    s, field_day = draw_field_day(s, component_rng(seed, "field_day"))
     site = SiteFrame.at(s.origin_lat_deg, s.origin_lon_deg)
     survey_path, motion = simulate_motion(s, component_rng(seed, "motion"))
     plan = plan_pings(s, motion, component_rng(seed, "pings"))
     seabed = generate_seabed(s, _seabed_bounds(s, motion), component_rng(seed, "seabed"))
     model = SonarModel.from_scenario(s, component_rng(seed, "sonar_model"))
     frames = ping_frames(motion, model, seabed, plan)
-    return SurveySetup(s, seed, site, survey_path, motion, plan, seabed, model, frames)
+    return SurveySetup(s, seed, site, survey_path, motion, plan, seabed, model, frames, field_day)
 
 
 def _write_sonar(path: Path, s: Scenario, source: PingSource) -> None:
@@ -205,7 +216,8 @@ def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> Simulatio
     (see ``tools.sim.writer`` for what each holds). ``overrides`` replace scenario fields,
     e.g. ``flavour="px4"``, ``max_pings=20``, ``duration_s=30``, ``n_beams=128``,
     ``range_resolution_m``, ``ping_rate_hz``, ``current_mps``, ``gps_bias_sigma_m``,
-    ``sonar_latency_s``. A bad name, key or value raises SeamapError.
+    ``sonar_latency_s``, ``randomise=False``; an override is never redrawn by the field
+    day. A bad name, key or value raises SeamapError.
     """
     started = wallclock.perf_counter()
     s = resolve_scenario(scenario, **overrides)
@@ -218,6 +230,7 @@ def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> Simulatio
     out.mkdir(parents=True, exist_ok=True)
 
     setup = prepare_survey(s, seed)
+    s = setup.scenario  # the field day's
     site, seabed, plan, frames = setup.site, setup.seabed, setup.plan, setup.frames
     start, end = setup.start, setup.end
     sonar_path = out / "sonar.oculus"
@@ -234,7 +247,7 @@ def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> Simulatio
     ping_truth = PingTruth(plan.ids, plan.acquisition, plan.receive, source.assist_db, frames.state)
     truth = build_truth(
         s, seed, overrides, site, setup.survey_path, seabed, setup.model, ping_truth, streams,
-        (start, end), seabed_section,
+        (start, end), seabed_section, setup.field_day,
     )  # fmt: skip
     truth_path = out / "truth.json"
     write_truth(truth_path, truth)

@@ -10,10 +10,12 @@ What the autopilot (sysid 1, compid 1) streams:
 - ``ardupilot`` flavour (Rover): HEARTBEAT 1 Hz (MAV_TYPE_SURFACE_BOAT,
   MAV_AUTOPILOT_ARDUPILOTMEGA, armed, AUTO = custom mode 10), SYSTEM_TIME 1 Hz, RAW_IMU at
   ``imu_rate_hz`` in ArduPilot's scaling (milli-g, mrad/s, milligauss), GPS_RAW_INT at
-  ``gps_rate_hz`` (fix_type 3, eph = HDOP x 100, vel cm/s, cog cdeg from true north,
-  satellites, h_acc/v_acc mm), and at ``heading_rate_hz`` ATTITUDE (yaw = compass-like
-  heading, radians from true north in -pi..pi), GLOBAL_POSITION_INT (hdg cdeg, position
-  from the GPS-aided estimate) and VFR_HUD (heading in whole degrees).
+  ``gps_rate_hz`` (fix_type 3, or 1 without a fix during an outage; eph = HDOP x 100,
+  vel cm/s, cog cdeg from true north, satellites, h_acc/v_acc mm), and at
+  ``heading_rate_hz`` ATTITUDE (yaw = compass-like heading, radians from true north in
+  -pi..pi), GLOBAL_POSITION_INT (hdg cdeg, position from the GPS-aided estimate, which
+  knows the fix's lag; dead-reckoned with a drifting velocity error during an outage)
+  and VFR_HUD (heading in whole degrees).
 - ``px4`` flavour: the same but MAV_AUTOPILOT_PX4 (AUTO.MISSION custom mode), HIGHRES_IMU
   in SI units (m/s^2, rad/s, gauss) and no RAW_IMU.
 
@@ -42,7 +44,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from tools.sim.scenarios import Scenario
-from tools.sim.sensors import GRAVITY_MPS2, GpsTrack, HeadingTrack, ImuTrack
+from tools.sim.sensors import GRAVITY_MPS2, CompassErrors, GpsTrack, HeadingTrack, ImuTrack
 from tools.sim.site import SiteFrame
 from tools.sim.trajectory import Motion
 
@@ -67,12 +69,14 @@ _GEOID_UNDULATION_M = -34.0  # WGS84 ellipsoid above mean sea level in the Chesa
 
 @dataclass(frozen=True)
 class NavStreams:
-    """The sensor tracks the tlog carries, plus the truth for GLOBAL_POSITION_INT."""
+    """The sensor tracks the tlog carries, plus the truth for GLOBAL_POSITION_INT and the
+    compass's errors (for truth.json)."""
 
     gps: GpsTrack
     heading: HeadingTrack
     imu: ImuTrack
     motion: Motion
+    compass: CompassErrors
 
 
 @dataclass(frozen=True)
@@ -261,6 +265,7 @@ def _gps_table(stamper: _Stamper, gps: GpsTrack, start: float, end: float) -> Me
     t = gps.time[sel]
     us = stamper.boot_us(t)
     h_acc = _i(gps.h_acc[sel] * 1000.0)
+    fix_type = gps.fix_type[sel].tolist()
     # lat, lon (degE7), alt, alt_ellipsoid (mm), eph (HDOP x 100), vel (cm/s),
     # cog (cdeg from true north), satellites, h_acc, v_acc (mm).
     fields = np.stack(
@@ -281,10 +286,10 @@ def _gps_table(stamper: _Stamper, gps: GpsTrack, start: float, end: float) -> Me
 
     def build(k: int) -> Any:
         lat, lon, alt, alt_ell, eph, vel, cog, sats, h, v = fields[k].tolist()
-        fix = mavlink.GPS_FIX_TYPE_3D_FIX
         return mavlink.MAVLink_gps_raw_int_message(
-            int(us[k]), fix, lat, lon, alt, eph, 150, vel, cog, sats, alt_ell, h, v, 150, 0, 0
-        )
+            int(us[k]), fix_type[k], lat, lon, alt, eph, 150, vel, cog, sats, alt_ell, h, v,
+            150, 0, 0,
+        )  # fmt: skip
 
     return MessageTable("GPS_RAW_INT", stamper.stamps(t), build)
 
@@ -311,14 +316,24 @@ def _heading_tables(
     ]
 
     # The autopilot's own position estimate: the GPS bias (it cannot know it) without the
-    # GPS white noise, which its filter mostly removes.
+    # GPS white noise, which its filter mostly removes, and without the fix's lag, which
+    # it compensates. Without a fix it dead-reckons: the bias stays as it was and a
+    # velocity error of a few cm/s accumulates.
     gps = streams.gps
     truth = streams.motion.at(t)
-    bias_e = np.interp(t, gps.time, gps.bias_east)
-    bias_n = np.interp(t, gps.time, gps.bias_north)
+    valid = gps.fix_type >= 3
+    if not np.any(valid):
+        valid = np.ones(len(gps.time), bool)
+    fix_times = gps.time[valid]
+    bias_e = np.interp(t, fix_times, gps.bias_east[valid])
+    bias_n = np.interp(t, fix_times, gps.bias_north[valid])
+    last = np.searchsorted(fix_times, t, side="right") - 1
+    since = np.where(last >= 0, t - fix_times[np.maximum(last, 0)] - 1.0 / s.gps_rate_hz, 0.0)
+    since = np.maximum(since, 0.0)
+    drift = stamper.rng.normal(0.0, 0.05, 2)  # m/s, grid east/north
     lat, lon = site.to_latlon(
-        truth["east"] + bias_e + stamper.rng.normal(0, 0.05, len(t)),
-        truth["north"] + bias_n + stamper.rng.normal(0, 0.05, len(t)),
+        truth["east"] + bias_e + drift[0] * since + stamper.rng.normal(0, 0.05, len(t)),
+        truth["north"] + bias_n + drift[1] * since + stamper.rng.normal(0, 0.05, len(t)),
     )
     vn, ve = site.rotate_grid_to_true(truth["vel_north"], truth["vel_east"])
     alt_m = truth["up"]

@@ -11,9 +11,10 @@ run-in, speeds up, holds the survey speed (with a small wobble), and stops at th
 the run-out. It follows the path with a small random cross-track error; in a current it
 crabs: the heading points along its velocity through the water (survey speed along the
 course minus the current), and the heading oscillates a few degrees about that. Waves add
-roll, pitch and heave (sums of sinusoids around the chop's period). Everything is sampled
-on a dense 200 Hz grid and smoothed, so velocities, accelerations and body rates are
-finite differences of smooth signals.
+roll, pitch and heave: sums of sinusoids of 1.5-4 s periods around the chop's dominant
+period with random phases (2-3 degrees RMS of roll and pitch, a few cm of heave on a
+field day). Everything is sampled on a dense 200 Hz grid and smoothed, so velocities,
+accelerations and body rates are finite differences of smooth signals.
 """
 
 from __future__ import annotations
@@ -207,6 +208,17 @@ def _sinusoids(
     return signal * std / math.sqrt(float(np.sum(weights**2)) / 2)
 
 
+WAVE_PERIOD_RANGE_S = (1.5, 4.0)
+"""A small boat's roll and pitch in a light chop: periods of 1.5-4 s."""
+
+
+def wave_components(s: Scenario) -> FloatArray:
+    """Periods (s) of the sinusoids of roll, pitch and heave: 0.7-1.6 times the dominant
+    period, kept within ``WAVE_PERIOD_RANGE_S``."""
+    periods = np.array([0.7, 0.85, 1.0, 1.25, 1.6]) * s.wave_period_s
+    return np.clip(periods, *WAVE_PERIOD_RANGE_S)
+
+
 def simulate_motion(s: Scenario, rng: np.random.Generator) -> tuple[SurveyPath, Motion]:
     """Sample the boat's true motion along the scenario's lawnmower (see module doc)."""
     path = lawnmower(s)
@@ -260,8 +272,7 @@ def simulate_motion(s: Scenario, rng: np.random.Generator) -> tuple[SurveyPath, 
     yaw_wobble = _sinusoids(rng, t, np.array([3.1, 5.3, 8.9, 14.0]), math.radians(s.yaw_wobble_deg))
     heading = course + crab + yaw_wobble
 
-    wave = s.wave_period_s
-    wave_periods = np.array([0.7, 0.85, 1.0, 1.25, 1.6]) * wave
+    wave_periods = wave_components(s)
     roll = _sinusoids(rng, t, wave_periods, math.radians(s.roll_deg))
     pitch = _sinusoids(rng, t, wave_periods, math.radians(s.pitch_deg))
     pitch += math.radians(s.trim_deg) * (ground_speed / s.speed_mps) ** 2

@@ -9,7 +9,9 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
 ``grid_heading_deg = heading_deg - site.meridian_convergence_deg``.
 
 - ``format``, ``version``, ``generator``, ``scenario``, ``seed``, ``description``,
-  ``overrides`` (the keyword overrides given), ``parameters`` (every scenario value).
+  ``overrides`` (the keyword overrides given), ``parameters`` (every scenario value as
+  simulated: the field day's draws in place), ``field_day`` (``randomised``, ``explicit``
+  fields the caller pinned, ``drawn``: each drawn value, ``ranges``: [low, high, kind]).
 - ``files``: names of the other files in the folder.
 - ``site``: ``origin_lat_deg``, ``origin_lon_deg`` (the scenario's origin), ``epsg``,
   ``utm_origin_east``, ``utm_origin_north``, ``local_frame`` (text),
@@ -23,21 +25,35 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
 - ``vehicle``: ``reference_point`` ("GPS antenna"), ``antenna_height_m`` above the
   waterline, survey ``speed_mps``, ``turn_radius_m``, ``lane_spacing_m``, ``lanes``
   (UTM start/end of each lane as planned), ``current`` (``speed_mps``, ``toward_deg``
-  grid), ``motion`` (wobble, roll, pitch, heave, wave period, trim).
+  grid), ``motion`` (wobble, roll, pitch, heave, wave period and the component
+  ``wave_periods_s``, trim).
 - ``sonar``: ``device``, ``master_mode``, ``frequency_hz``, ``fan_deg``, ``n_beams``,
   ``n_ranges``, ``range_m``, ``range_resolution_m``, ``range_of_bin`` (text: the range of
-  bin i), ``ping_rate_hz``, ``latency_s`` (receive time - acquisition time), the mount
+  bin i), ``ping_rate_hz``, ``latency_s`` (the fixed part of receive time - acquisition
+  time) and ``latency_jitter_mean_s`` (mean of its exponential tail), ``beam_geometry``
+  (text: the line array's cones), the mount
   (``mount_x_m``, ``mount_y_m``, ``mount_z_m`` body FRD from the antenna, ``mount_yaw_deg``
   clockwise, ``tilt_deg`` down), ``vertical_aperture_deg``, ``horizontal_beamwidth_deg``,
   ``bearings_deg`` (the table sent in every ping), ``gamma``, ``gain_percent``,
   ``speed_of_sound_mps``, ``gain_word`` (text: what the per-row gain words mean),
   ``model`` (the image model's parameters).
 - ``sensors``: ``flavour``, ``clock`` (text), ``stamps`` (link delay model), ``gps``
-  (rate, bias model and parameters, and per fix: ``time`` (sample time), ``bias_east_m``,
-  ``bias_north_m``, ``error_east_m``, ``error_north_m`` in grid east/north), ``compass``
-  (rate, ``bias_deg`` constant part, wander, noise, per sample ``time`` and ``bias_deg``),
-  ``imu`` (rate, noise, constant biases ``accel_bias_mps2`` / ``gyro_bias_dps`` FRD,
-  wander, ``mag_noise_mgauss``, ``mag_misalignment_deg``).
+  (rate, bias model and parameters, ``lag_s``, ``outage`` (``start_time``/``end_time`` or
+  null), and per fix: ``time`` (the stamp), ``antenna_time`` (time - lag: when the antenna
+  was where the fix says), ``antenna_east``/``antenna_north`` (UTM of the antenna then),
+  ``bias_east_m``, ``bias_north_m``, ``error_east_m``, ``error_north_m`` (grid east/north:
+  reported minus the antenna at antenna_time), ``stamp_error_east_m``/``_north_m``
+  (reported minus the antenna at the stamp: what the lag adds), ``h_acc_m``,
+  ``fix_type``), ``compass`` (rate, ``bias_deg`` constant part, wander, the deviation's
+  amplitudes, phases and ``deviation_coefficients`` A..D of ``A sin psi + B cos psi + C
+  sin 2 psi + D cos 2 psi`` (psi magnetic heading), the correlated noise, white
+  ``noise_deg``, and per sample ``time``, ``heading_deg`` (the true heading then),
+  ``bias_deg`` (constant + wander),
+  ``deviation_deg``, ``noise_deg`` (correlated + white), ``error_deg`` (the total heading
+  error: reported minus true)), ``imu`` (rate, noise, constant biases
+  ``accel_bias_mps2`` / ``gyro_bias_dps`` FRD, wander, ``mag_noise_mgauss``,
+  ``mag_misalignment_deg`` (the constant part of the magnetometer's heading error; it
+  also carries the wander and the deviation: ``mag_error``)).
 - ``pings``: one object per ping in log order: ``ping_id``, ``time`` (the .oculus item
   time = receive time), ``acquisition_time`` (when the ping was taken; the pose below is
   the true pose then), ``east``/``north`` (UTM, antenna), ``local_east``/``local_north``,
@@ -54,9 +70,15 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
   "aluminium"/"pvc", ``side_m`` between bar centre lines, ``bar_width_m``,
   ``bar_height_m``, ``centre_east``/``centre_north`` UTM, ``centre_local_east``/
   ``centre_local_north``, ``corners`` four [east, north] UTM of the bar centre lines,
-  ``oysters`` inside), ``oysters`` (columns: ``east``, ``north`` UTM, ``length_m``,
-  ``width_m``, ``height_m``, ``bearing_deg`` grid, ``clump``, ``quadrat``),
-  ``shell_patches`` (UTM centre, radius), ``ripples``.
+  ``oysters`` inside, ``array`` the array it belongs to), ``quadrat_arrays`` (per array:
+  ``array``, UTM ``centre_east``/``centre_north``, ``row_bearing_deg``), ``racks`` (per
+  rack: its parameters and ``bars``, [east0, north0, east1, north1] UTM of each bar's
+  centre line), ``oysters`` (columns: ``east``, ``north`` UTM, ``length_m``, ``width_m``,
+  ``height_m``, ``bearing_deg`` grid, ``clump``, ``quadrat``), ``shell_patches`` and
+  ``mud_patches`` (UTM centre, radius), ``ripples`` (the main train's ``wavelength_m``,
+  ``amplitude_m``, ``bearing_deg``, and ``trains``: per train its mean values, ``bend_deg``
+  and the warp's plane waves, from which the local wave vector anywhere is
+  ``2 pi / wavelength_m (u + sum_j a_j cos(k_j . x + c_j) k_j)``, x local metres).
 - ``seabed``: ``file``/``height_file``, ``height_scale_m``, ``resolution_m``, UTM
   ``west``/``north``/``east``/``south`` edges, ``width_px``, ``height_px``,
   ``reflectivity_scale`` (text).
@@ -73,19 +95,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from tools.sim.features import features_section
+from tools.sim.jsonround import round_json
 from tools.sim.scenarios import Scenario, scenario_dict
-from tools.sim.seabed import (
-    ALUMINIUM_SIDE_M,
-    FRAME_SPACING_M,
-    PVC_SIDE_M,
-    ROW_CENTRE_DISTANCE_M,
-    ROW_GAP_M,
-    Seabed,
-)
+from tools.sim.seabed import Seabed
 from tools.sim.site import SiteFrame
 from tools.sim.sonar import SonarModel
 from tools.sim.tlog import NavStreams
-from tools.sim.trajectory import SurveyPath
+from tools.sim.trajectory import SurveyPath, wave_components
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -104,21 +121,6 @@ class PingTruth:
     receive: FloatArray
     assist_db: FloatArray
     state: dict[str, FloatArray]
-
-
-def round_json(x: Any, digits: int = 6) -> Any:
-    """Round floats (in lists and dicts too) for a compact, stable JSON."""
-    if isinstance(x, dict):
-        return {k: round_json(v, digits) for k, v in x.items()}
-    if isinstance(x, np.ndarray):
-        return [round_json(v, digits) for v in x.tolist()]
-    if isinstance(x, list | tuple):
-        return [round_json(v, digits) for v in x]
-    if isinstance(x, float | np.floating):
-        return round(float(x), digits)
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def write_truth(path: Path, truth: dict[str, Any]) -> None:
@@ -149,6 +151,7 @@ def build_truth(
     streams: NavStreams,
     span: tuple[float, float],
     seabed_section: dict[str, Any],
+    field_day: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The truth.json document (see the module doc); ``span``: the logs' (start, end)."""
     r = round_json
@@ -250,6 +253,7 @@ def build_truth(
                 "trim_deg": s.trim_deg,
                 "heave_m": s.heave_m,
                 "wave_period_s": s.wave_period_s,
+                "wave_periods_s": r(wave_components(s), 4),
                 "cross_track_m": s.cross_track_m,
             },
         },
@@ -265,6 +269,10 @@ def build_truth(
             "range_of_bin": "(i + 0.5) * range_resolution_m",
             "ping_rate_hz": s.ping_rate_hz,
             "latency_s": s.sonar_latency_s,
+            "latency_jitter_mean_s": s.sonar_latency_jitter_s,
+            "beam_geometry": "line array along the sonar's y axis: beam theta is the cone "
+            "sin(theta) = p_y / |p| (p in the sonar frame: x boresight, y starboard, z down "
+            "when level), p = r (cos theta cos psi, sin theta, cos theta sin psi)",
             "mount_x_m": s.mount_x_m,
             "mount_y_m": s.mount_y_m,
             "mount_z_m": s.mount_z_m,
@@ -287,7 +295,8 @@ def build_truth(
                 "row_gain_jitter_db": s.row_gain_jitter_db,
                 "gain_assist_db": s.gain_assist_db,
                 "backscatter": "reflectivity * sin^2(local grazing) (Lambert)",
-                "vertical_pattern": "exp(-4 ln2 (elevation / vertical_aperture)^2) + 0.002",
+                "vertical_pattern": "exp(-4 ln2 (psi / vertical_aperture)^2) + 0.002, psi the "
+                "angle about the array axis",
             },
         },
         "sensors": {
@@ -300,33 +309,8 @@ def build_truth(
                 "jitter_mean_s": s.stamp_jitter_s,
                 "model": "receive stamp = sample time + delay_s + exponential(jitter_mean_s)",
             },
-            "gps": {
-                "rate_hz": s.gps_rate_hz,
-                "bias_model": "first-order Gauss-Markov per axis (grid east/north), stationary",
-                "bias_sigma_m": s.gps_bias_sigma_m,
-                "bias_tau_s": s.gps_bias_tau_s,
-                "noise_m": s.gps_noise_m,
-                "vertical_sigma_m": s.gps_vertical_sigma_m,
-                "fixes": {
-                    "time": r(gps.time[gps_sel]),
-                    "bias_east_m": r(gps.bias_east[gps_sel], 4),
-                    "bias_north_m": r(gps.bias_north[gps_sel], 4),
-                    "error_east_m": r(gps.error_east[gps_sel], 4),
-                    "error_north_m": r(gps.error_north[gps_sel], 4),
-                },
-            },
-            "compass": {
-                "rate_hz": s.heading_rate_hz,
-                "messages": ["ATTITUDE.yaw", "GLOBAL_POSITION_INT.hdg", "VFR_HUD.heading"],
-                "bias_deg": s.compass_bias_deg,
-                "bias_wander_deg": s.compass_bias_wander_deg,
-                "bias_tau_s": s.compass_bias_tau_s,
-                "noise_deg": s.compass_noise_deg,
-                "samples": {
-                    "time": r(hd.time[hd_sel]),
-                    "bias_deg": r(np.degrees(hd.bias[hd_sel]), 4),
-                },
-            },
+            "gps": _gps_section(s, streams, gps_sel, e0, n0),
+            "compass": _compass_section(s, streams, hd_sel),
             "imu": {
                 "rate_hz": s.imu_rate_hz,
                 "message": "HIGHRES_IMU" if s.flavour == "px4" else "RAW_IMU",
@@ -339,75 +323,89 @@ def build_truth(
                 "imu_bias_wander": s.imu_bias_wander,
                 "mag_noise_mgauss": s.mag_noise_mgauss,
                 "mag_misalignment_deg": s.compass_bias_deg,
+                "mag_error": "the field is seen from the attitude with the heading turned by "
+                "the compass bias, its wander and the deviation (not its correlated or white "
+                "heading noise)",
             },
         },
         "pings": pings,
         "features": features_section(seabed, site, s),
         "seabed": seabed_section,
         "parameters": round_json(scenario_dict(s)),
+        "field_day": round_json(field_day or {}),
     }
 
 
-def features_section(seabed: Seabed, site: SiteFrame, s: Scenario) -> dict[str, Any]:
-    """The truth's ``features``: quadrats, oysters, shell patches, ripples (UTM)."""
-    e0, n0 = site.utm_east0, site.utm_north0
-    oysters = seabed.oysters
-    in_quadrat = np.bincount(oysters.quadrat[oysters.quadrat >= 0], minlength=len(seabed.quadrats))
-    quadrats = []
-    for qi, q in enumerate(seabed.quadrats):
-        corners = q.corners() + np.array([e0, n0])
-        quadrats.append(
-            {
-                "row": q.row,
-                "index": q.index,
-                "material": q.material,
-                "side_m": q.side_m,
-                "bar_width_m": q.bar_width_m,
-                "bar_height_m": q.bar_height_m,
-                "centre_east": round_json(q.centre_east + e0),
-                "centre_north": round_json(q.centre_north + n0),
-                "centre_local_east": round_json(q.centre_east),
-                "centre_local_north": round_json(q.centre_north),
-                "corners": round_json(corners),
-                "oysters": int(in_quadrat[qi]),
-            }
-        )
+def _gps_section(
+    s: Scenario, streams: NavStreams, sel: npt.NDArray[np.bool_], e0: float, n0: float
+) -> dict[str, Any]:
+    """truth.json's ``sensors.gps`` (see the module doc)."""
+    r = round_json
+    gps = streams.gps
+    at_stamp = streams.motion.at(gps.time[sel])
+    reported_e = gps.antenna_east[sel] + gps.error_east[sel]
+    reported_n = gps.antenna_north[sel] + gps.error_north[sel]
+    outage = None
+    if s.gps_outage_start_s is not None:
+        begin = streams.motion.start + s.gps_outage_start_s
+        outage = {"start_time": r(begin), "end_time": r(begin + s.gps_outage_duration_s)}
     return {
-        "quadrat_layout": {
-            "aluminium_side_m": ALUMINIUM_SIDE_M,
-            "pvc_side_m": PVC_SIDE_M,
-            "row_gap_m": ROW_GAP_M,
-            "frame_spacing_m": FRAME_SPACING_M,
-            "row_centre_distance_m": round_json(ROW_CENTRE_DISTANCE_M),
-            "row_bearing_deg": s.quadrat_row_bearing_deg,
-            "centre_east": round_json(s.quadrat_centre_east_m + e0),
-            "centre_north": round_json(s.quadrat_centre_north_m + n0),
-            "sides": "side_m is measured between bar centre lines; row_gap_m between the "
-            "centre lines of the rows' nearest sides",
+        "rate_hz": s.gps_rate_hz,
+        "bias_model": "first-order Gauss-Markov per axis (grid east/north), stationary",
+        "bias_sigma_m": s.gps_bias_sigma_m,
+        "bias_tau_s": s.gps_bias_tau_s,
+        "noise_m": s.gps_noise_m,
+        "vertical_sigma_m": s.gps_vertical_sigma_m,
+        "lag_s": s.gps_lag_s,
+        "lag": "a fix stamped t reports the antenna where it was at t - lag_s",
+        "h_acc": "reported 1-sigma per axis: hypot(bias_sigma_m, noise_m), +-15 % wobble",
+        "outage": outage,
+        "fixes": {
+            "time": r(gps.time[sel]),
+            "antenna_time": r(gps.antenna_time[sel]),
+            "antenna_east": r(gps.antenna_east[sel] + e0, 4),
+            "antenna_north": r(gps.antenna_north[sel] + n0, 4),
+            "bias_east_m": r(gps.bias_east[sel], 4),
+            "bias_north_m": r(gps.bias_north[sel], 4),
+            "error_east_m": r(gps.error_east[sel], 4),
+            "error_north_m": r(gps.error_north[sel], 4),
+            "stamp_error_east_m": r(reported_e - at_stamp["east"], 4),
+            "stamp_error_north_m": r(reported_n - at_stamp["north"], 4),
+            "h_acc_m": r(gps.h_acc[sel], 3),
+            "fix_type": gps.fix_type[sel].tolist(),
         },
-        "quadrats": quadrats,
-        "oysters": {
-            "count": len(oysters),
-            "east": round_json(oysters.east + e0, 3),
-            "north": round_json(oysters.north + n0, 3),
-            "length_m": round_json(oysters.length, 3),
-            "width_m": round_json(oysters.width, 3),
-            "height_m": round_json(oysters.height, 3),
-            "bearing_deg": round_json(np.degrees(oysters.bearing) % 360.0, 1),
-            "clump": oysters.clump.tolist(),
-            "quadrat": oysters.quadrat.tolist(),
-        },
-        "shell_patches": [
-            {
-                "east": round_json(p.centre_east + e0, 3),
-                "north": round_json(p.centre_north + n0, 3),
-                "radius_m": round_json(p.radius_m, 3),
-            }
-            for p in seabed.shell_patches
-        ],
-        "ripples": {
-            "wavelength_m": s.ripple_wavelength_m,
-            "amplitude_m": s.ripple_amplitude_m,
-            "bearing_deg": s.ripple_bearing_deg,
+    }
+
+
+def _compass_section(
+    s: Scenario, streams: NavStreams, sel: npt.NDArray[np.bool_]
+) -> dict[str, Any]:
+    """truth.json's ``sensors.compass`` (see the module doc)."""
+    r = round_json
+    hd = streams.heading
+    return {
+        "rate_hz": s.heading_rate_hz,
+        "messages": ["ATTITUDE.yaw", "GLOBAL_POSITION_INT.hdg", "VFR_HUD.heading"],
+        "bias_deg": s.compass_bias_deg,
+        "bias_wander_deg": s.compass_bias_wander_deg,
+        "bias_tau_s": s.compass_bias_tau_s,
+        "deviation_1_deg": s.compass_deviation_1_deg,
+        "deviation_1_phase_deg": s.compass_deviation_1_phase_deg,
+        "deviation_2_deg": s.compass_deviation_2_deg,
+        "deviation_2_phase_deg": s.compass_deviation_2_phase_deg,
+        "deviation": "d1 sin(psi + p1) + d2 sin(2 psi + p2), psi = true heading - declination",
+        "deviation_coefficients": r(streams.compass.coefficients_deg()),
+        "gm_sigma_deg": s.compass_gm_sigma_deg,
+        "gm_tau_s": s.compass_gm_tau_s,
+        "noise_deg": s.compass_noise_deg,
+        "error": "reported = true heading + bias (constant + wander) + deviation + noise "
+        "(Gauss-Markov gm_sigma_deg, gm_tau_s, plus white noise_deg)",
+        "samples": {
+            "time": r(hd.time[sel]),
+            "heading_deg": r(np.degrees(np.mod(hd.heading_true - hd.error, 2 * np.pi))[sel], 4),
+            "bias_deg": r(np.degrees(hd.bias[sel]), 4),
+            "deviation_deg": r(np.degrees(hd.deviation[sel]), 4),
+            "noise_deg": r(np.degrees(hd.noise[sel]), 4),
+            "error_deg": r(np.degrees(hd.error[sel]), 4),
         },
     }

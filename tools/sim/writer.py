@@ -7,8 +7,8 @@ seabed.tif: uint8 GeoTIFF, single band, the site's UTM CRS, north-up, square cel
 255 x the seabed reflectivity the sonar model saw (1..255; 0 = no data).
 seabed_height.tif: int16, same grid: height above the seabed's mean plane in units of
 ``height_scale_m`` (0.1 mm; also the band's GDAL scale).
-site.toml: the SiteConfig of the simulated boat (mount, altitude, declination, the IMU
-message of the flavour).
+site.toml: the SiteConfig of the simulated boat (mount, altitude, ping rate, declination,
+the IMU message of the flavour): what its crew would know, not the field day's errors.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from tools.sim.seabed import Seabed
 from tools.sim.site import SiteFrame
 
 HEIGHT_STEP_M = 1e-4
+_FIRE_RATES_HZ = (2.0, 5.0, 10.0, 15.0, 40.0)
 
 
 def write_seabed(folder: Path, seabed: Seabed, site: SiteFrame) -> dict[str, Any]:
@@ -84,6 +85,8 @@ def site_config(s: Scenario, altitude_m: float) -> SiteConfig:
         tilt_deg=s.tilt_deg,
         altitude_m=round(altitude_m, 3),
     )
+    if s.ping_rate_hz in _FIRE_RATES_HZ:  # the rate the boat fires its sonar at
+        sonar = replace(sonar, ping_rate_hz=int(s.ping_rate_hz))
     mav = replace(
         base.mavlink,
         imu_source="highres" if s.flavour == "px4" else "raw",

@@ -1,0 +1,296 @@
+"""Choosing loop closures that are right, on seabeds that repeat.
+
+Periodic seabeds (bedform ripples a third of a metre apart, quadrat rows and farm racks a
+metre apart) give strong false correlation peaks one period away, no farther than the
+GNSS error between lanes; one wrong closure outweighs a lane's GNSS and the solver bends
+the map to fit it. So a closure is taken only when three things agree:
+
+1. **Several hypotheses** per candidate pair (the registrar's best distinct peaks), each
+   compared with where the graph without closures puts frame j relative to frame i, in
+   that prediction's own covariance (the linearised marginal of the solved graph) plus
+   the closure's: a squared Mahalanobis distance d^2.
+2. **Mutual consistency** between closures of the same pair of passes (Mangelson et al.,
+   "Pairwise Consistent Measurement Set Maximization", ICRA 2018,
+   doi:10.1109/ICRA.2018.8460217): two right closures imply the same correction of one
+   pass against the other (the GNSS bias and the chain's drift change slowly), two wrong
+   ones one period apart from it. Hypotheses are grouped by the correction they imply;
+   the group supported by the most candidates wins, and only if no other group, also
+   consistent with the prediction, comes close (a periodic seabed the graph cannot tell
+   apart is left unclosed rather than closed wrong).
+3. **A robust solve**: the kept closures enter with a Cauchy kernel, and any that still
+   disagree with the solution beyond the gate are dropped before the final solve.
+
+Closures between opposite headings carry an extra along-look uncertainty: shading and
+shadows move with the view direction and bias such registrations by centimetres.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.fmt import RelativePose
+from mapping.frames import compose, relative_pose
+from mapping.fusion import Fusion, RelativeConstraint, relative_chi2, sqrt_information
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureHypothesis:
+    """One peak of a candidate pair: pose of j in i (vehicle frame), its covariance
+    (3 x 3, forward m, starboard m, yaw rad) and similarity score."""
+
+    relative: RelativePose
+    covariance: Array
+    score: float
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureCandidate:
+    """Frames i < j (node numbers of the graph) and their hypotheses, best first."""
+
+    i: int
+    j: int
+    time_i: float
+    time_j: float
+    hypotheses: tuple[ClosureHypothesis, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureParams:
+    gate_chi2: float = 11.34
+    """Squared Mahalanobis distance from the prediction (3 dof, 99 %)."""
+    consistency_chi2: float = 9.21
+    """Between two closures' implied corrections (2 dof, 99 %)."""
+    drift_sigma_m: float = 0.02
+    """Change of the inter-pass correction between two closures: at zero time apart..."""
+    drift_rate_mps: float = 0.004
+    """...growing by this per second apart (GNSS bias wander against the chain)."""
+    ambiguity_ratio: float = 0.7
+    """A rival group with this share of the winner's support, also within the gate,
+    makes the pass pair ambiguous: no closure is taken there."""
+    distinct_m: float = 0.1
+    """Rival clusters count as another mode only this far apart (the shortest seabed
+    period that matters, ripples of 0.2-0.45 m, is more than twice this)."""
+    pass_gap_s: float = 8.0
+    """Candidates further apart than this in either frame's time belong to other passes."""
+    opposite_look_sigma_m: float = 0.06
+    """Extra along-look sigma of a closure between headings more than 90 degrees apart."""
+
+
+@dataclass
+class ClosureReport:
+    candidates: int = 0
+    pass_pairs: int = 0
+    rejected_gate: int = 0
+    rejected_inconsistent: int = 0
+    rejected_ambiguous: int = 0
+    rejected_residual: int = 0
+    kept: int = 0
+    details: list[dict[str, float]] = field(default_factory=list)
+
+
+def _pass_groups(candidates: Sequence[ClosureCandidate], gap_s: float) -> list[list[int]]:
+    """Single-linkage groups of candidates close in both frames' times."""
+    order = sorted(range(len(candidates)), key=lambda k: candidates[k].time_i)
+    groups: list[list[int]] = []
+    for k in order:
+        c = candidates[k]
+        home = None
+        for g in groups:
+            if any(
+                abs(candidates[m].time_i - c.time_i) < gap_s
+                and abs(candidates[m].time_j - c.time_j) < gap_s
+                for m in g
+            ):
+                home = g
+                break
+        if home is None:
+            groups.append([k])
+        else:
+            home.append(k)
+    return groups
+
+
+def _look_covariance(poses: Array, c: ClosureCandidate, sigma_m: float) -> Array:
+    """Extra covariance (vehicle frame of i) along the look axis for opposite headings."""
+    dpsi = abs(float((poses[c.j, 2] - poses[c.i, 2] + math.pi) % (2 * math.pi) - math.pi))
+    extra = np.zeros((3, 3))
+    if dpsi > math.pi / 2:
+        extra[0, 0] = sigma_m**2
+        extra[1, 1] = (0.5 * sigma_m) ** 2
+    return extra
+
+
+def _correction(poses: Array, c: ClosureCandidate, h: ClosureHypothesis) -> Array:
+    """Where the hypothesis puts frame j minus where the graph has it (world east/north
+    metres, yaw radians)."""
+    implied = compose(poses[c.i], h.relative)
+    d = implied - poses[c.j]
+    d[2] = (d[2] + math.pi) % (2 * math.pi) - math.pi
+    return d
+
+
+def _world_cov(poses: Array, i: int, cov: Array) -> Array:
+    """A covariance in the frame of pose i turned into world east/north (2 x 2)."""
+    psi = poses[i, 2]
+    s, c = math.sin(psi), math.cos(psi)
+    # (forward, starboard) -> (east, north): east = f s + st c, north = f c - st s.
+    rot = np.array([[s, c], [c, -s]])
+    return np.asarray(rot @ cov[:2, :2] @ rot.T, float)
+
+
+def select_closures(
+    fusion: Fusion,
+    poses: Array,
+    candidates: Sequence[ClosureCandidate],
+    params: ClosureParams,
+    report: ClosureReport,
+    internal: Array | None = None,
+) -> list[RelativeConstraint]:
+    """The closures to add to the solved graph (``fusion``'s last solution, ``poses``
+    its node poses), as robust constraints.
+
+    internal: (n, 3, 3) covariance each node carries that the graph does not know of
+    (two-stage: its drift from its rigid submap's anchor), added to the prediction."""
+    report.candidates = len(candidates)
+    live = [c for c in candidates if c.hypotheses]
+    if not live:
+        return []
+    predicted = fusion.relative_covariances([(c.i, c.j) for c in live])
+    if internal is not None:
+        predicted = predicted + np.stack([internal[c.i] + internal[c.j] for c in live])
+    # Per candidate and hypothesis: distance to the prediction and implied correction.
+    d2: list[list[float]] = []
+    corr: list[list[Array]] = []
+    cov_total: list[list[Array]] = []
+    for c, sigma_pred in zip(live, predicted, strict=True):
+        rel = relative_pose(poses[c.i], poses[c.j])
+        look = _look_covariance(poses, c, params.opposite_look_sigma_m)
+        row_d2, row_corr, row_cov = [], [], []
+        for hyp in c.hypotheses:
+            e = np.array(
+                [
+                    hyp.relative.forward_m - rel.forward_m,
+                    hyp.relative.starboard_m - rel.starboard_m,
+                    (hyp.relative.yaw_rad - rel.yaw_rad + math.pi) % (2 * math.pi) - math.pi,
+                ]
+            )
+            total = sigma_pred + hyp.covariance + look
+            row_d2.append(float(e @ np.linalg.solve(total, e)))
+            row_corr.append(_correction(poses, c, hyp))
+            row_cov.append(hyp.covariance + look)
+        d2.append(row_d2)
+        corr.append(row_corr)
+        cov_total.append(row_cov)
+
+    chosen: list[tuple[int, int]] = []  # (candidate, hypothesis)
+    groups = _pass_groups(live, params.pass_gap_s)
+    report.pass_pairs = len(groups)
+    for group in groups:
+        # Every hypothesis of the group seeds a cluster of consistent corrections.
+        seeds = [(k, h) for k in group for h in range(len(live[k].hypotheses))]
+        clusters: list[tuple[int, float, list[tuple[int, int]]]] = []
+        for k0, h0 in seeds:
+            members: list[tuple[int, int]] = []
+            for k in group:
+                best_h, best = -1, math.inf
+                for h in range(len(live[k].hypotheses)):
+                    diff = corr[k][h][:2] - corr[k0][h0][:2]
+                    dt = max(
+                        abs(live[k].time_i - live[k0].time_i), abs(live[k].time_j - live[k0].time_j)
+                    )
+                    drift = (params.drift_sigma_m + params.drift_rate_mps * dt) ** 2
+                    cov = (
+                        _world_cov(poses, live[k].i, cov_total[k][h])
+                        + _world_cov(poses, live[k0].i, cov_total[k0][h0])
+                        + drift * np.eye(2)
+                    )
+                    dist = float(diff @ np.linalg.solve(cov, diff))
+                    if dist < params.consistency_chi2 and dist < best:
+                        best_h, best = h, dist
+                if best_h >= 0:
+                    members.append((k, best_h))
+            gate = float(np.median([d2[k][h] for k, h in members]))
+            clusters.append((len(members), gate, members))
+        inside = [cl for cl in clusters if cl[1] < params.gate_chi2]
+        if not inside:
+            report.rejected_gate += len(group)
+            continue
+        inside.sort(key=lambda cl: (-cl[0], cl[1]))
+        winner = inside[0]
+        winner_set = {k for k, _ in winner[2]}
+        # A rival: a cluster within the gate that shares no hypothesis with the winner and
+        # implies another correction (a different mode, e.g. a period away), nearly as
+        # well supported.
+        winner_members = set(winner[2])
+        rival = next(
+            (
+                cl
+                for cl in inside[1:]
+                if cl[0] >= params.ambiguity_ratio * winner[0]
+                and not winner_members & set(cl[2])
+                and _distinct(winner[2], cl[2], corr, params.distinct_m)
+            ),
+            None,
+        )
+        if rival is not None:
+            report.rejected_ambiguous += len(group)
+            continue
+        report.rejected_inconsistent += len(group) - len(winner_set)
+        for k, h in winner[2]:
+            if d2[k][h] < params.gate_chi2:
+                chosen.append((k, h))
+            else:
+                report.rejected_gate += 1
+    constraints = []
+    for k, h in chosen:
+        c = live[k]
+        hyp = c.hypotheses[h]
+        look = _look_covariance(poses, c, params.opposite_look_sigma_m)
+        constraints.append(
+            RelativeConstraint(
+                c.i,
+                c.j,
+                hyp.relative.forward_m,
+                hyp.relative.starboard_m,
+                hyp.relative.yaw_rad,
+                sqrt_information(hyp.covariance + look),
+                robust=True,
+                kind="closure",
+            )
+        )
+        report.details.append(
+            {"i": float(c.i), "j": float(c.j), "d2": d2[k][h], "score": hyp.score}
+        )
+    return constraints
+
+
+def _distinct(
+    a: list[tuple[int, int]], b: list[tuple[int, int]], corr: list[list[Array]], apart_m: float
+) -> bool:
+    """Two clusters imply corrections further apart than ``apart_m`` on average."""
+    ma = np.mean([corr[k][h][:2] for k, h in a], axis=0)
+    mb = np.mean([corr[k][h][:2] for k, h in b], axis=0)
+    return bool(np.linalg.norm(ma - mb) > apart_m)
+
+
+def prune_closures(
+    poses: Array,
+    closures: Sequence[RelativeConstraint],
+    params: ClosureParams,
+    report: ClosureReport,
+) -> list[RelativeConstraint]:
+    """Closures that still disagree with the solution beyond the gate (their own
+    covariance only, which is strict) are dropped."""
+    if not closures:
+        return []
+    chi2 = relative_chi2(poses, closures)
+    keep = chi2 < 4.0 * params.gate_chi2
+    report.rejected_residual += int((~keep).sum())
+    return [c for c, k in zip(closures, keep, strict=True) if k]

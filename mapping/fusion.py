@@ -1,0 +1,628 @@
+"""Survey-wide fusion in physical units: registrations, GNSS with a wandering bias, compass
+and gyro in one sparse nonlinear least-squares problem.
+
+The paper's objective (Zhang et al., Sec. III.F, Eq. 6-7) weighs registrations against
+per-frame EKF priors with one lambda. Those priors are not independent: a u-blox M8N's
+error is a Gauss-Markov process of about 1-1.5 m with a correlation time of tens of
+seconds, plus 0.5-0.8 m of white noise, and its fixes lag the antenna. A chain weighted
+against such priors bends to follow the wander, and the weight that works depends on the
+ping rate. Here every measurement enters once, at its own rate, whitened by its own
+standard deviation (metres, radians, seconds), and the correlated parts of the errors are
+states of the problem (e.g. Barfoot, *State Estimation for Robotics*, 2017, Sec. 3.3 and
+9; the GNSS bias as a first-order Gauss-Markov process as in Farrell, *Aided
+Navigation*, 2008, Sec. 4.9):
+
+Variables
+    frame poses (x east, y north m; psi rad clockwise from grid north) of the vehicle
+    reference point (the GPS antenna); GNSS bias knots (east, north m) on a regular time
+    grid; one gyro yaw-rate bias (rad/s); the compass error's Fourier coefficients in
+    heading (constant, 1 and 2 cycles: a misalignment plus hard- and soft-iron deviation,
+    rad); one time offset (s) between the GNSS fixes and the frame stamps (receiver lag
+    minus sonar latency).
+Factors
+    - relative pose i -> j (registration, odometry bridge, loop closure): the pose of j
+      in the frame of i minus the measurement, times its square-root information;
+      loop closures may carry a Cauchy kernel (iteratively reweighted);
+    - GNSS fix z at stamp t: p(t - dt) + b(t) - z over the white sigma, p interpolated
+      between the frames that bracket it, b between the knots;
+    - bias process: b_k+1 - phi b_k over sigma_b sqrt(1 - phi^2), phi = exp(-h / tau),
+      and the stationary b_0 over sigma_b;
+    - compass h at t: psi(t) + c . f(psi) - h over its sigma, the correlated part of its
+      noise inflated by the number of samples per correlation time (so many correlated
+      samples count as the few independent ones they are);
+    - gyro: psi_j - psi_i - (integral of the yaw rate - g (t_j - t_i)) over the noise
+      density times sqrt(t_j - t_i);
+    - zero-mean priors on the gyro bias, the compass coefficients and the time offset.
+
+Because nothing is weighted per frame, the solution does not depend on the ping rate;
+because the GNSS bias is a state, lanes 30-120 s apart may sit on different offsets
+without bending the chain between them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class GnssErrorModel:
+    """A u-blox M8N-class receiver on a small boat (metres, seconds)."""
+
+    white_sigma_m: float = 0.6
+    """White part of the error, per axis."""
+    bias_sigma_m: float = 1.2
+    """Stationary sigma of the Gauss-Markov part, per axis."""
+    bias_tau_s: float = 45.0
+    """Correlation time of the Gauss-Markov part."""
+    knot_spacing_s: float = 2.0
+    """Spacing of the bias knots (linear in between): well below the correlation time."""
+    time_offset_s: float = 0.1
+    """Prior mean of fix lag minus sonar latency (a fix shows the antenna that long ago,
+    relative to the frame stamps)."""
+    time_offset_sigma_s: float = 0.15
+    max_bracket_s: float = 3.0
+    """Fixes between frames further apart than this are left out (no pose to tie)."""
+
+
+@dataclass(frozen=True, slots=True)
+class CompassModel:
+    """A magnetic compass on a small boat (radians, seconds)."""
+
+    white_sigma_rad: float = math.radians(0.7)
+    correlated_sigma_rad: float = math.radians(1.0)
+    correlation_time_s: float = 10.0
+    bias_sigma_rad: float = math.radians(6.0)
+    """Prior sigma of the constant misalignment."""
+    deviation_sigma_rad: float = math.radians(2.0)
+    """Prior sigma of each 1- and 2-cycle deviation coefficient."""
+
+
+@dataclass(frozen=True, slots=True)
+class GyroModel:
+    """The autopilot's yaw rate, levelled (radians, seconds)."""
+
+    noise_density: float = math.radians(0.05)
+    """Angle random walk, rad/sqrt(s) (MEMS gyros: 0.01-0.05 degrees/sqrt(s); this also
+    covers the levelling with a noisy roll and pitch)."""
+    floor_rad: float = math.radians(0.02)
+    """Added to every factor: stamp jitter and interpolation."""
+    bias_sigma_rps: float = math.radians(0.5)
+    max_gap_s: float = 0.5
+    """Frame pairs over an IMU gap longer than this get no gyro factor."""
+
+
+@dataclass(frozen=True, slots=True)
+class FusionParams:
+    gnss: GnssErrorModel = field(default_factory=GnssErrorModel)
+    compass: CompassModel = field(default_factory=CompassModel)
+    gyro: GyroModel = field(default_factory=GyroModel)
+    max_iterations: int = 25
+    tolerance: float = 1e-6
+    """Stop when the largest pose update is below this (metres / radians)."""
+    cauchy_scale: float = 2.0
+    """Robust closures: the Cauchy kernel's scale, in standard deviations."""
+
+
+@dataclass(frozen=True, slots=True)
+class RelativeConstraint:
+    """Pose j in the frame of pose i (forward, starboard metres; yaw radians clockwise),
+    with its square-root information (3 x 3, upper triangular or any W with
+    W^T W = covariance^-1). ``robust``: down-weighted by a Cauchy kernel when it
+    disagrees with the rest. ``kind`` names where it came from."""
+
+    i: int
+    j: int
+    forward_m: float
+    starboard_m: float
+    yaw_rad: float
+    sqrt_info: Array
+    robust: bool = False
+    kind: str = "registration"
+
+
+def sqrt_information(covariance: Array) -> Array:
+    """W with W^T W = covariance^-1 (from the Cholesky factor of the inverse)."""
+    info = np.linalg.inv(np.asarray(covariance, float))
+    info = 0.5 * (info + info.T)
+    return np.asarray(np.linalg.cholesky(info).T, float)
+
+
+def diagonal_sqrt_info(sigmas: Sequence[float]) -> Array:
+    return np.diag([1.0 / max(s, 1e-12) for s in sigmas])
+
+
+@dataclass(frozen=True)
+class FusionData:
+    """The measurements, in the survey's local frame (metres, radians, UNIX seconds).
+
+    gnss_times (g,), gnss_xy (g, 2); heading_times (h,), headings (h,) grid headings;
+    yaw_integral (n,): the gyro's integrated yaw rate at each frame time (radians, NaN
+    where unknown), from which consecutive frames get their gyro factors; yaw_gap (n,):
+    True where the IMU had a gap between frame k-1 and k.
+    """
+
+    gnss_times: Array
+    gnss_xy: Array
+    heading_times: Array
+    headings: Array
+    yaw_integral: Array
+    yaw_gap: npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class RigidGroups:
+    """Frames held rigidly in groups: frame k's pose = anchor[group[k]] composed with
+    offsets[k] (forward, starboard metres, yaw radians in the anchor's frame)."""
+
+    group: IntArray
+    offsets: Array
+    n_groups: int
+
+
+@dataclass(frozen=True)
+class FusionSolution:
+    poses: Array
+    bias_times: Array
+    bias_xy: Array
+    gyro_bias_rps: float
+    compass_coefficients: Array
+    """Compass error = c . (1, sin psi, cos psi, sin 2 psi, cos 2 psi), radians."""
+    time_offset_s: float
+    iterations: int
+    chi2: dict[str, float]
+    """Sum of squared whitened residuals per kind of factor."""
+    counts: dict[str, int]
+    robust_weights: Array
+    """Per constraint, the final IRLS weight (1 for non-robust ones)."""
+
+
+def _wrap(angle: Array) -> Array:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+_N_COMPASS = 5
+
+
+class _Layout:
+    def __init__(self, n: int, n_knots: int) -> None:
+        self.n = n
+        self.n_knots = n_knots
+        self.bias0 = 3 * n
+        self.gyro = self.bias0 + 2 * n_knots
+        self.compass0 = self.gyro + 1
+        self.offset = self.compass0 + _N_COMPASS
+        self.size = self.offset + 1
+
+
+class _Builder:
+    """Accumulates whitened residual rows and their Jacobian triplets."""
+
+    def __init__(self) -> None:
+        self.residuals: list[Array] = []
+        self.rows: list[IntArray] = []
+        self.cols: list[IntArray] = []
+        self.vals: list[Array] = []
+        self.kinds: list[tuple[str, int, int]] = []
+        self.count = 0
+
+    def block(self, kind: str, residual: Array) -> int:
+        """Reserve rows for ``residual`` (flat); returns the first row index."""
+        start = self.count
+        self.residuals.append(np.asarray(residual, float).ravel())
+        self.count += self.residuals[-1].size
+        self.kinds.append((kind, start, self.count))
+        return start
+
+    def add(self, rows: IntArray, cols: IntArray, vals: Array) -> None:
+        rows, cols, vals = np.broadcast_arrays(
+            np.asarray(rows, np.int64), np.asarray(cols, np.int64), np.asarray(vals, float)
+        )
+        self.rows.append(rows.ravel())
+        self.cols.append(cols.ravel())
+        self.vals.append(vals.ravel())
+
+    def assemble(self, size: int) -> tuple[Array, sp.csr_matrix]:
+        residual = np.concatenate(self.residuals) if self.residuals else np.zeros(0)
+        jac = sp.csr_matrix(
+            (
+                np.concatenate(self.vals) if self.vals else np.zeros(0),
+                (
+                    np.concatenate(self.rows) if self.rows else np.zeros(0, np.int64),
+                    np.concatenate(self.cols) if self.cols else np.zeros(0, np.int64),
+                ),
+            ),
+            shape=(self.count, size),
+        )
+        return residual, jac
+
+
+def _bracket(
+    times: Array, query: Array, max_bracket_s: float
+) -> tuple[IntArray, Array, npt.NDArray[np.bool_]]:
+    """Index k with times[k] <= q <= times[k+1], the fraction w, and which queries are
+    usable (inside the frames' span, between frames at most ``max_bracket_s`` apart)."""
+    n = times.size
+    k = np.clip(np.searchsorted(times, query, side="right") - 1, 0, max(n - 2, 0))
+    k1 = np.minimum(k + 1, n - 1)
+    span = times[k1] - times[k]
+    w = np.where(span > 0, (query - times[k]) / np.where(span > 0, span, 1.0), 0.0)
+    usable = (w >= -0.05) & (w <= 1.05) & (span <= max_bracket_s)
+    return k.astype(np.int64), np.clip(w, 0.0, 1.0), usable
+
+
+def _compass_basis(psi: Array) -> tuple[Array, Array]:
+    """f(psi) (m, 5) and df/dpsi (m, 5)."""
+    s1, c1 = np.sin(psi), np.cos(psi)
+    s2, c2 = np.sin(2 * psi), np.cos(2 * psi)
+    one = np.ones_like(psi)
+    zero = np.zeros_like(psi)
+    f = np.stack([one, s1, c1, s2, c2], axis=1)
+    df = np.stack([zero, c1, -s1, 2 * c2, -2 * s2], axis=1)
+    return f, df
+
+
+def _relative_factors(
+    b: _Builder,
+    poses: Array,
+    constraints: Sequence[RelativeConstraint],
+    weights: Array,
+) -> None:
+    if not constraints:
+        return
+    ei = np.array([c.i for c in constraints], np.int64)
+    ej = np.array([c.j for c in constraints], np.int64)
+    meas = np.array([(c.forward_m, c.starboard_m, c.yaw_rad) for c in constraints], float)
+    sqrt_w = np.sqrt(weights)[:, None, None]
+    wmat = np.stack([c.sqrt_info for c in constraints]) * sqrt_w  # (m, 3, 3)
+    dx = poses[ej, 0] - poses[ei, 0]
+    dy = poses[ej, 1] - poses[ei, 1]
+    psi = poses[ei, 2]
+    s, c = np.sin(psi), np.cos(psi)
+    forward = s * dx + c * dy
+    starboard = c * dx - s * dy
+    raw = np.column_stack(
+        [forward - meas[:, 0], starboard - meas[:, 1], _wrap(poses[ej, 2] - psi - meas[:, 2])]
+    )
+    m = len(constraints)
+    # Raw Jacobian (m, 3, 6) over (x_i, y_i, psi_i, x_j, y_j, psi_j).
+    jr = np.zeros((m, 3, 6))
+    jr[:, 0, 0], jr[:, 0, 1], jr[:, 0, 2], jr[:, 0, 3], jr[:, 0, 4] = -s, -c, starboard, s, c
+    jr[:, 1, 0], jr[:, 1, 1], jr[:, 1, 2], jr[:, 1, 3], jr[:, 1, 4] = -c, s, -forward, c, -s
+    jr[:, 2, 2], jr[:, 2, 5] = -1.0, 1.0
+    start = b.block("relative", np.einsum("mab,mb->ma", wmat, raw))
+    jw = np.einsum("mab,mbk->mak", wmat, jr)
+    rows = start + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, :, None]
+    cols_i = 3 * ei[:, None] + np.arange(3)[None, :]
+    cols_j = 3 * ej[:, None] + np.arange(3)[None, :]
+    cols = np.concatenate([cols_i, cols_j], axis=1)[:, None, :]
+    b.add(np.broadcast_to(rows, jw.shape), np.broadcast_to(cols, jw.shape), jw)
+
+
+def _relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
+    """Squared Mahalanobis residual of each constraint at ``poses``."""
+    if not constraints:
+        return np.zeros(0)
+    b = _Builder()
+    _relative_factors(b, poses, constraints, np.ones(len(constraints)))
+    r = b.residuals[0].reshape(-1, 3)
+    return np.asarray((r * r).sum(axis=1), float)
+
+
+class Fusion:
+    """Builds and solves the problem for one set of frames (``times`` ascending)."""
+
+    def __init__(
+        self,
+        times: Array,
+        data: FusionData,
+        params: FusionParams | None = None,
+        rigid: RigidGroups | None = None,
+    ):
+        """rigid: frames held rigidly in groups (two-stage's submaps): each frame's pose is
+        its group's anchor pose composed with a fixed offset, and the anchors are what is
+        solved for."""
+        self.params = params or FusionParams()
+        self.times = np.asarray(times, float)
+        self.data = data
+        self.rigid = rigid
+        g = self.params.gnss
+        n = self.times.size
+        if n == 0:
+            raise ValueError("no frames to fuse")
+        t0 = float(
+            min(self.times[0], data.gnss_times[0] if data.gnss_times.size else self.times[0])
+        )
+        t1 = float(
+            max(self.times[-1], data.gnss_times[-1] if data.gnss_times.size else self.times[-1])
+        )
+        n_knots = max(2, math.ceil((t1 - t0) / g.knot_spacing_s) + 1)
+        self.knot_times: Array = t0 + np.arange(n_knots, dtype=np.float64) * g.knot_spacing_s
+        self.layout = _Layout(n if rigid is None else rigid.n_groups, n_knots)
+        self._frame_layout = _Layout(n, n_knots)
+        # Gyro factors between consecutive frames with a known integral.
+        yaw = data.yaw_integral
+        ok = np.isfinite(yaw[1:]) & np.isfinite(yaw[:-1]) & ~data.yaw_gap[1:]
+        self._gyro_k = np.flatnonzero(ok).astype(np.int64)
+
+    # -- residuals ------------------------------------------------------------------
+    def _build(
+        self,
+        state: Array,
+        constraints: Sequence[RelativeConstraint],
+        weights: Array,
+    ) -> tuple[Array, sp.csr_matrix, list[tuple[str, int, int]]]:
+        p = self.params
+        frame_state, to_state = self._frame_state(state)
+        state = frame_state
+        lay = self._frame_layout
+        n = lay.n
+        poses = state[: 3 * n].reshape(n, 3)
+        bias = state[lay.bias0 : lay.gyro].reshape(lay.n_knots, 2)
+        gyro_bias = state[lay.gyro]
+        coeffs = state[lay.compass0 : lay.offset]
+        offset = state[lay.offset]
+        b = _Builder()
+
+        _relative_factors(b, poses, constraints, weights)
+
+        # GNSS fixes.
+        d = self.data
+        if d.gnss_times.size and n >= 2:
+            query = d.gnss_times - offset
+            k, w, usable = _bracket(self.times, query, p.gnss.max_bracket_s)
+            k, w, z, tq = k[usable], w[usable], d.gnss_xy[usable], d.gnss_times[usable]
+            if k.size:
+                k1 = k + 1
+                pos = (1 - w)[:, None] * poses[k, :2] + w[:, None] * poses[k1, :2]
+                kb = np.clip(
+                    np.floor((tq - self.knot_times[0]) / p.gnss.knot_spacing_s), 0, lay.n_knots - 2
+                ).astype(np.int64)
+                u = np.clip((tq - self.knot_times[kb]) / p.gnss.knot_spacing_s, 0.0, 1.0)
+                bxy = (1 - u)[:, None] * bias[kb] + u[:, None] * bias[kb + 1]
+                inv = 1.0 / p.gnss.white_sigma_m
+                start = b.block("gnss", inv * (pos + bxy - z))
+                m = k.size
+                span = self.times[k1] - self.times[k]
+                velocity = (poses[k1, :2] - poses[k, :2]) / np.maximum(span, 1e-6)[:, None]
+                for axis in range(2):
+                    rows = start + 2 * np.arange(m) + axis
+                    b.add(rows, 3 * k + axis, inv * (1 - w))
+                    b.add(rows, 3 * k1 + axis, inv * w)
+                    b.add(rows, lay.bias0 + 2 * kb + axis, inv * (1 - u))
+                    b.add(rows, lay.bias0 + 2 * (kb + 1) + axis, inv * u)
+                    b.add(rows, np.full(m, lay.offset), -inv * velocity[:, axis])
+
+        # The bias as a Gauss-Markov process between knots, stationary at the first.
+        g = p.gnss
+        phi = math.exp(-g.knot_spacing_s / g.bias_tau_s)
+        step_sigma = g.bias_sigma_m * math.sqrt(max(1.0 - phi * phi, 1e-12))
+        nk = lay.n_knots
+        start = b.block("bias_process", (bias[1:] - phi * bias[:-1]) / step_sigma)
+        for axis in range(2):
+            rows = start + 2 * np.arange(nk - 1) + axis
+            b.add(rows, lay.bias0 + 2 * np.arange(1, nk) + axis, np.full(nk - 1, 1 / step_sigma))
+            b.add(
+                rows, lay.bias0 + 2 * np.arange(nk - 1) + axis, np.full(nk - 1, -phi / step_sigma)
+            )
+        start = b.block("bias_prior", bias[0] / g.bias_sigma_m)
+        b.add(start + np.arange(2), lay.bias0 + np.arange(2), np.full(2, 1 / g.bias_sigma_m))
+
+        # Compass headings.
+        cm = p.compass
+        if d.heading_times.size and n >= 2:
+            k, w, usable = _bracket(self.times, d.heading_times, p.gnss.max_bracket_s)
+            k, w, h = k[usable], w[usable], d.headings[usable]
+            if k.size:
+                k1 = k + 1
+                psi = poses[k, 2] + w * _wrap(poses[k1, 2] - poses[k, 2])
+                f, df = _compass_basis(psi)
+                spacing = (
+                    float(np.median(np.diff(d.heading_times))) if d.heading_times.size > 1 else 1.0
+                )
+                inflate = max(1.0, 2.0 * cm.correlation_time_s / max(spacing, 1e-3))
+                sigma = math.sqrt(cm.white_sigma_rad**2 + cm.correlated_sigma_rad**2 * inflate)
+                inv = 1.0 / sigma
+                start = b.block("compass", inv * _wrap(psi + f @ coeffs - h))
+                rows = start + np.arange(k.size)
+                slope = 1.0 + df @ coeffs
+                b.add(rows, 3 * k + 2, inv * (1 - w) * slope)
+                b.add(rows, 3 * k1 + 2, inv * w * slope)
+                for c in range(_N_COMPASS):
+                    b.add(rows, np.full(k.size, lay.compass0 + c), inv * f[:, c])
+        compass_sigmas = np.array([cm.bias_sigma_rad] + [cm.deviation_sigma_rad] * (_N_COMPASS - 1))
+        start = b.block("compass_prior", coeffs / compass_sigmas)
+        b.add(
+            start + np.arange(_N_COMPASS), lay.compass0 + np.arange(_N_COMPASS), 1 / compass_sigmas
+        )
+
+        # Gyro yaw increments between consecutive frames.
+        gm = p.gyro
+        kk = self._gyro_k
+        if kk.size:
+            dt = self.times[kk + 1] - self.times[kk]
+            measured = d.yaw_integral[kk + 1] - d.yaw_integral[kk]
+            sigma = np.sqrt(gm.noise_density**2 * np.maximum(dt, 0.0) + gm.floor_rad**2)
+            inv = 1.0 / sigma
+            raw = _wrap(poses[kk + 1, 2] - poses[kk, 2] - (measured - gyro_bias * dt))
+            start = b.block("gyro", inv * raw)
+            rows = start + np.arange(kk.size)
+            b.add(rows, 3 * (kk + 1) + 2, inv)
+            b.add(rows, 3 * kk + 2, -inv)
+            b.add(rows, np.full(kk.size, lay.gyro), inv * dt)
+        start = b.block("gyro_prior", np.array([gyro_bias / gm.bias_sigma_rps]))
+        b.add(np.array([start]), np.array([lay.gyro]), np.array([1 / gm.bias_sigma_rps]))
+
+        start = b.block(
+            "offset_prior", np.array([(offset - g.time_offset_s) / g.time_offset_sigma_s])
+        )
+        b.add(np.array([start]), np.array([lay.offset]), np.array([1 / g.time_offset_sigma_s]))
+
+        residual, jac = b.assemble(lay.size)
+        if to_state is not None:
+            jac = (jac @ to_state).tocsr()
+        return residual, jac, b.kinds
+
+    def _frame_state(self, state: Array) -> tuple[Array, sp.csr_matrix | None]:
+        """The state with every frame's pose (from its anchor, when rigid), and the
+        Jacobian of that state with respect to the solved one (None: the same)."""
+        rigid = self.rigid
+        if rigid is None:
+            return state, None
+        lay, fl = self.layout, self._frame_layout
+        anchors = state[: 3 * lay.n].reshape(lay.n, 3)
+        a = anchors[rigid.group]
+        o = rigid.offsets
+        s, c = np.sin(a[:, 2]), np.cos(a[:, 2])
+        frames = np.column_stack(
+            [
+                a[:, 0] + o[:, 0] * s + o[:, 1] * c,
+                a[:, 1] + o[:, 0] * c - o[:, 1] * s,
+                (a[:, 2] + o[:, 2]) % (2 * math.pi),
+            ]
+        )
+        out = np.concatenate([frames.ravel(), state[3 * lay.n :]])
+        n = fl.n
+        k = np.arange(n)
+        g = rigid.group
+        rows = [3 * k, 3 * k + 1, 3 * k + 2, 3 * k, 3 * k + 1]
+        cols = [3 * g, 3 * g + 1, 3 * g + 2, 3 * g + 2, 3 * g + 2]
+        vals = [
+            np.ones(n),
+            np.ones(n),
+            np.ones(n),
+            o[:, 0] * c - o[:, 1] * s,
+            -o[:, 0] * s - o[:, 1] * c,
+        ]
+        extra = fl.size - 3 * n
+        rows.append(3 * n + np.arange(extra))
+        cols.append(3 * lay.n + np.arange(extra))
+        vals.append(np.ones(extra))
+        t = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(fl.size, lay.size),
+        )
+        return out, t
+
+    def frame_poses(self, state: Array) -> Array:
+        """(n, 3) frame poses of a solved state."""
+        frames, _ = self._frame_state(state)
+        n = self._frame_layout.n
+        return frames[: 3 * n].reshape(n, 3).copy()
+
+    # -- solving --------------------------------------------------------------------
+    def initial_state(self, poses: Array) -> Array:
+        """The state to start from: ``poses`` are frame poses, or anchor poses when the
+        frames are rigid groups."""
+        lay = self.layout
+        state = np.zeros(lay.size)
+        state[: 3 * lay.n] = np.asarray(poses, float).ravel()
+        state[lay.offset] = self.params.gnss.time_offset_s
+        return state
+
+    def solve(
+        self,
+        initial_poses: Array,
+        constraints: Sequence[RelativeConstraint],
+        state: Array | None = None,
+    ) -> tuple[FusionSolution, Array]:
+        """Gauss-Newton (with IRLS weights for robust constraints) from ``initial_poses``
+        (or a previous ``state``); returns the solution and its state vector."""
+        p = self.params
+        lay = self.layout
+        x = self.initial_state(initial_poses) if state is None else np.array(state, float)
+        robust = np.array([c.robust for c in constraints], bool)
+        weights = np.ones(len(constraints))
+        iterations = 0
+        for iterations in range(1, p.max_iterations + 1):  # noqa: B007
+            if robust.any():
+                sq = _relative_chi2(self.frame_poses(x), constraints)
+                # Cauchy: w = 1 / (1 + e^2 / c^2), e the Mahalanobis residual.
+                weights = np.where(robust, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0)
+            residual, jac, _ = self._build(x, constraints, weights)
+            normal = (jac.T @ jac).tocsc()
+            normal = normal + sp.identity(lay.size, format="csc") * 1e-9
+            step = spla.spsolve(normal, -(jac.T @ residual))
+            x = x + step
+            x[2 : 3 * lay.n : 3] %= 2 * math.pi
+            if float(np.max(np.abs(step[: 3 * lay.n]), initial=0.0)) < p.tolerance:
+                break
+        residual, jac, kinds = self._build(x, constraints, weights)
+        self._last = (x, constraints, weights, jac)
+        chi2: dict[str, float] = {}
+        counts: dict[str, int] = {}
+        for kind, a, z in kinds:
+            chi2[kind] = chi2.get(kind, 0.0) + float(residual[a:z] @ residual[a:z])
+            counts[kind] = counts.get(kind, 0) + (z - a)
+        solution = FusionSolution(
+            poses=self.frame_poses(x),
+            bias_times=self.knot_times.copy(),
+            bias_xy=x[lay.bias0 : lay.gyro].reshape(lay.n_knots, 2).copy(),
+            gyro_bias_rps=float(x[lay.gyro]),
+            compass_coefficients=x[lay.compass0 : lay.offset].copy(),
+            time_offset_s=float(x[lay.offset]),
+            iterations=iterations,
+            chi2=chi2,
+            counts=counts,
+            robust_weights=weights,
+        )
+        return solution, x
+
+    def relative_covariances(self, pairs: Sequence[tuple[int, int]]) -> Array:
+        """Covariance (k, 3, 3) of the relative pose j in i (forward, starboard, yaw) for
+        each pair, from the information matrix at the last solution (the linearised
+        marginal: J_rel Sigma_{ij} J_rel^T)."""
+        x, _, _, jac = self._last
+        lay = self.layout
+        normal = (jac.T @ jac).tocsc() + sp.identity(lay.size, format="csc") * 1e-9
+        lu = spla.splu(normal)
+        frames, to_state = self._frame_state(x)
+        n = self._frame_layout.n
+        poses = frames[: 3 * n].reshape(n, 3)
+        out = np.zeros((len(pairs), 3, 3))
+        if not pairs:
+            return out
+        # Columns of the frames' covariance for every pose involved, in one batch:
+        # Sigma_frames = T Sigma T^T, T the frames' Jacobian in the solved state.
+        t = sp.identity(lay.size, format="csr") if to_state is None else sp.csr_matrix(to_state)
+        involved = sorted({k for pair in pairs for k in pair})
+        where = {k: i for i, k in enumerate(involved)}
+        rows = np.concatenate([np.arange(3 * k, 3 * k + 3) for k in involved])
+        rhs = np.asarray(t[rows].toarray().T)
+        solved = lu.solve(rhs)
+        cols_all = np.asarray(t @ solved)
+        for m, (i, j) in enumerate(pairs):
+            idx = np.r_[3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
+            block = np.hstack(
+                [
+                    cols_all[idx, 3 * where[i] : 3 * where[i] + 3],
+                    cols_all[idx, 3 * where[j] : 3 * where[j] + 3],
+                ]
+            )
+            dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
+            psi = poses[i, 2]
+            s, c = math.sin(psi), math.cos(psi)
+            fwd, stb = s * dx + c * dy, c * dx - s * dy
+            jr = np.array(
+                [
+                    [-s, -c, stb, s, c, 0.0],
+                    [-c, s, -fwd, c, -s, 0.0],
+                    [0.0, 0.0, -1.0, 0.0, 0.0, 1.0],
+                ]
+            )
+            out[m] = jr @ block @ jr.T
+        return out
+
+
+def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
+    """Squared Mahalanobis residual of each constraint at ``poses`` (public form)."""
+    return _relative_chi2(poses, constraints)

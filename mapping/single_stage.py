@@ -1,0 +1,186 @@
+"""Single-stage mapping: every frame of a survey placed by one fusion of its registrations,
+loop closures and navigation measurements, all weighted in physical units
+(``mapping.fusion``), over a graph that never breaks (``mapping.survey_graph``) and with
+closures chosen robustly (``mapping.closures``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.closures import (
+    ClosureCandidate,
+    ClosureParams,
+    ClosureReport,
+    prune_closures,
+    select_closures,
+)
+from mapping.fmt import RelativePose
+from mapping.frames import FrameOutcome, LocalRegistration, SonarMount, compose, relative_pose
+from mapping.fusion import Fusion, FusionParams, FusionSolution, RelativeConstraint, RigidGroups
+from mapping.loops import LoopParams, LoopReport, find_candidates, register_hypotheses
+from mapping.navigation import NavInputs
+from mapping.posegraph import Edge
+from mapping.samples import Ping
+from mapping.survey_graph import GraphParams, chain_constraints, fusion_data
+
+Array = npt.NDArray[np.float64]
+
+
+ClosureSource = Callable[
+    [Array], tuple[Iterable[Ping], LocalRegistration, tuple[float, float], float]
+]
+
+
+@dataclass(frozen=True, slots=True)
+class SingleStageParams:
+    fusion: FusionParams = field(default_factory=FusionParams)
+    graph: GraphParams = field(default_factory=GraphParams)
+    closures: ClosureParams = field(default_factory=ClosureParams)
+
+
+@dataclass
+class SingleStageResult:
+    poses: Array  # (n, 3), NaN where not a node
+    closures: list[Edge]
+    solution: FusionSolution | None
+    closure_report: ClosureReport
+    summary: dict[str, Any]
+
+
+def _as_edges(
+    nodes: npt.NDArray[np.int64], constraints: Sequence[RelativeConstraint]
+) -> list[Edge]:
+    return [
+        Edge(int(nodes[c.i]), int(nodes[c.j]), c.forward_m, c.starboard_m, c.yaw_rad)
+        for c in constraints
+    ]
+
+
+def single_stage(
+    times: Array,
+    accepted: npt.NDArray[np.bool_],
+    edges: Sequence[Edge],
+    outcomes: Sequence[FrameOutcome],
+    priors: Array,
+    inputs: NavInputs,
+    mount: SonarMount,
+    params: SingleStageParams,
+    loops: LoopParams,
+    closure_source: Callable[
+        [Array], tuple[Iterable[Ping], LocalRegistration, tuple[float, float], float]
+    ]
+    | None,
+    loop_report: LoopReport,
+    rigid_frames: int | None = None,
+) -> SingleStageResult:
+    """Place the accepted frames. ``closure_source(poses)`` gives what loop closures need
+    (a fresh pass over the pings, a registration set-up, the lit range band and half the
+    fan) or is None when closures are off.
+
+    rigid_frames: two-stage (the paper's baseline): runs of this many frames are first
+    chained into rigid submaps (stage 1, as fmt-only does), and only the submaps' poses
+    are solved (stage 2), against the same measurements. Consecutive submaps are tied by
+    the registration between their end frames, which is what the paper's half-overlapping
+    subsets share (both carry the same chained relative poses)."""
+    n = times.size
+    nodes, chain = chain_constraints(times, accepted, edges, outcomes, priors, mount, params.graph)
+    out = np.full((n, 3), np.nan)
+    report = ClosureReport()
+    if nodes.size == 0:
+        return SingleStageResult(out, [], None, report, {})
+    node_times = times[nodes]
+    data = fusion_data(inputs, node_times, params.graph.sonar_latency_s)
+    rigid = _rigid_groups(chain, nodes.size, rigid_frames) if rigid_frames else None
+    fusion = Fusion(node_times, data, params.fusion, rigid)
+    initial = priors[nodes] if rigid is None else _anchor_priors(priors[nodes], rigid)
+    solution, state = fusion.solve(initial, chain)
+    poses_nodes = solution.poses
+    kept: list[RelativeConstraint] = []
+    if closure_source is not None and nodes.size > 1:
+        full = np.full((n, 3), np.nan)
+        full[nodes] = poses_nodes
+        pings, local, lit, half_fan = closure_source(full)
+        pairs = find_candidates(times, full, accepted, mount, lit, half_fan, loops)
+        found = register_hypotheses(pings, pairs, full, local, loops, loop_report)
+        position = {int(k): i for i, k in enumerate(nodes)}
+        candidates = [
+            ClosureCandidate(position[i], position[j], float(times[i]), float(times[j]), tuple(h))
+            for i, j, h in found
+            if i in position and j in position
+        ]
+        internal = _internal_drift(rigid, chain, poses_nodes) if rigid is not None else None
+        kept = select_closures(fusion, poses_nodes, candidates, params.closures, report, internal)
+        if kept:
+            solution, state = fusion.solve(initial, chain + kept, state)
+            kept = prune_closures(solution.poses, kept, params.closures, report)
+            solution, state = fusion.solve(initial, chain + kept, state)
+        report.kept = len(kept)
+        loop_report.kept = len(kept)
+    out[nodes] = solution.poses
+    summary = {
+        "nodes": int(nodes.size),
+        "registration_edges": sum(c.kind == "registration" for c in chain),
+        "odometry_edges": sum(c.kind == "odometry" for c in chain),
+        "closures": len(kept),
+        "gyro_bias_dps": float(np.degrees(solution.gyro_bias_rps)),
+        "compass_coefficients_deg": [float(v) for v in np.degrees(solution.compass_coefficients)],
+        "gnss_time_offset_s": solution.time_offset_s,
+        "gnss_bias_rms_m": float(np.sqrt(np.mean(solution.bias_xy**2))),
+        "iterations": solution.iterations,
+        "chi2_per_factor": {
+            k: solution.chi2[k] / max(solution.counts.get(k, 1), 1) for k in solution.chi2
+        },
+    }
+    return SingleStageResult(out, _as_edges(nodes, kept), solution, report, summary)
+
+
+def _rigid_groups(chain: Sequence[RelativeConstraint], n: int, size: int) -> RigidGroups:
+    """Stage 1: runs of ``size`` nodes chained from their first node (fmt-only)."""
+    group = (np.arange(n) // max(size, 2)).astype(np.int64)
+    chained = np.zeros((n, 3))
+    by_j = {c.j: c for c in chain if c.j == c.i + 1}
+    for k in range(1, n):
+        c = by_j.get(k)
+        step = RelativePose(c.forward_m, c.starboard_m, c.yaw_rad) if c else RelativePose(0, 0, 0)
+        chained[k] = compose(chained[k - 1], step)
+    offsets = np.zeros((n, 3))
+    first = np.searchsorted(group, group)  # first node of each node's group
+    for k in range(n):
+        rel = relative_pose(chained[first[k]], chained[k])
+        offsets[k] = (rel.forward_m, rel.starboard_m, rel.yaw_rad)
+    return RigidGroups(group, offsets, int(group[-1]) + 1 if n else 0)
+
+
+def _anchor_priors(priors: Array, rigid: RigidGroups) -> Array:
+    """Each submap's starting pose: its first frame's prior."""
+    first = np.searchsorted(rigid.group, np.arange(rigid.n_groups))
+    return np.asarray(priors[first], float)
+
+
+def _internal_drift(rigid: RigidGroups, chain: Sequence[RelativeConstraint], poses: Array) -> Array:
+    """(n, 3, 3) covariance of each node against its submap's anchor: the chained
+    registrations' own (random-walk) errors, which a rigid submap holds at zero. Yaw
+    variance adds up per step; each step's translation variance, plus the lateral
+    effect of the yaw variance over the distance from the anchor."""
+    n = rigid.group.size
+    steps = np.zeros((n, 3))
+    for c in chain:
+        if c.j == c.i + 1 and c.j < n:
+            cov = np.linalg.inv(c.sqrt_info.T @ c.sqrt_info)
+            steps[c.j] = np.diag(cov)
+    out = np.zeros((n, 3, 3))
+    first = np.searchsorted(rigid.group, rigid.group)
+    for k in range(n):
+        a = int(first[k])
+        if k == a:
+            continue
+        var = steps[a + 1 : k + 1].sum(axis=0)
+        distance = float(np.hypot(*(poses[k, :2] - poses[a, :2])))
+        lateral = var[2] * distance**2 / 3.0
+        out[k] = np.diag([var[0] + lateral, var[1] + lateral, var[2]])
+    return out

@@ -1,0 +1,180 @@
+"""The single-stage survey graph: the frames of a survey, their registrations and the
+navigation measurements handed to ``mapping.fusion``.
+
+Every accepted frame is a node. Consecutive accepted frames are always joined: by their
+registration when it was accepted, otherwise (a rejected frame in between, a chain
+restart after a gap, a frame that could not be registered) by an odometry edge from the
+smoothed EKF, whose covariance grows with the time it spans. The graph therefore never
+falls apart into segments that float on the GNSS separately.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.frames import FrameOutcome, SonarMount, relative_pose
+from mapping.fusion import (
+    FusionData,
+    RelativeConstraint,
+    diagonal_sqrt_info,
+    sqrt_information,
+)
+from mapping.navigation import NavInputs
+from mapping.posegraph import Edge
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class GraphParams:
+    """Uncertainties of the edges the graph adds itself (metres, radians, seconds)."""
+
+    registration_sigma_m: tuple[float, float] = (0.008, 0.003)
+    """Forward and starboard sigma of a consecutive registration when the registrar
+    gives none: the RMS errors measured on simulated field days (7.5 mm along the look
+    direction, 2.5 mm across)."""
+    registration_sigma_rad: float = math.radians(0.12)
+    """Measured: 0.11 degrees RMS per pair (p90 0.18)."""
+    use_registrar_covariance: bool = False
+    """Weigh each registration by the registrar's own covariance (else the measured sigmas)."""
+    registration_floor_m: float = 0.003
+    """Added in quadrature to the registrar's own sigma (interpolation, the model)."""
+    registration_floor_rad: float = math.radians(0.02)
+    odometry_sigma_m: float = 0.02
+    """Odometry bridge: sigma at zero span, growing by ``odometry_velocity_sigma_mps`` a
+    second (the smoothed filter's velocity error)."""
+    odometry_velocity_sigma_mps: float = 0.05
+    odometry_sigma_rad: float = math.radians(0.5)
+    odometry_rate_sigma_rps: float = math.radians(0.5)
+    registration_scale: float = 1.0
+    """Multiplies the registrations' information (1: as their covariance says). The
+    paper's lambda sweep (Table IV) maps onto it as lambda / 1e4."""
+    sonar_latency_s: float = 0.05
+    """Prior of the time from a ping's acquisition to its stamp (for the gyro and
+    compass factors; the GNSS time offset is estimated)."""
+
+
+def fusion_data(inputs: NavInputs, frame_times: Array, latency_s: float) -> FusionData:
+    """Measurements for ``mapping.fusion`` from the filter inputs: GNSS fixes and grid
+    headings as they are, and the levelled gyro yaw rate integrated to each frame's
+    acquisition time (trapezoidal, radians clockwise)."""
+    gnss_t = np.array([f.time for f in inputs.positions], float)
+    gnss_xy = np.array([(f.x, f.y) for f in inputs.positions], float).reshape(-1, 2)
+    head_t = np.array([h.time for h in inputs.headings], float)
+    head = np.array([h.heading for h in inputs.headings], float)
+    n = frame_times.size
+    yaw = np.full(n, np.nan)
+    gap = np.zeros(n, bool)
+    if len(inputs.imu) >= 2 and n:
+        t = np.array([s.time for s in inputs.imu], float)
+        rate = np.array([s.yaw_rate_rps for s in inputs.imu], float)
+        integral = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+        query = frame_times - latency_s
+        inside = (query >= t[0]) & (query <= t[-1])
+        yaw[inside] = np.interp(query[inside], t, integral)
+        # An IMU gap between two frames: no gyro factor across it.
+        gaps = np.flatnonzero(np.diff(t) > 0.5)
+        if gaps.size:
+            gap_start, gap_end = t[gaps], t[gaps + 1]
+            prev = np.concatenate([[query[0]], query[:-1]])
+            for a, b in zip(gap_start, gap_end, strict=True):
+                gap |= (prev < b) & (query > a)
+    return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+
+
+def registration_sqrt_info(
+    outcome: FrameOutcome | None, mount: SonarMount, params: GraphParams
+) -> Array:
+    """Square-root information of a consecutive registration (vehicle frame): the
+    registrar's own covariance when it gives one, moved through the mount, with a floor;
+    else the defaults."""
+    reg = outcome.registration if outcome is not None else None
+    cov = getattr(reg, "covariance", None) if reg is not None else None
+    scale = math.sqrt(params.registration_scale)
+    if cov is None or not params.use_registrar_covariance:
+        fwd, stb = params.registration_sigma_m
+        return diagonal_sqrt_info((fwd, stb, params.registration_sigma_rad)) * scale
+    cov = np.asarray(cov, float)
+    # The vehicle-frame relative pose is M S M^-1: to first order a rotation of the
+    # translation by the mount yaw and a lever-arm term in yaw.
+    c, s = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
+    lever = np.array([mount.forward_m, mount.starboard_m])
+    rot = np.array([[c, -s], [s, c]])
+    jac = np.zeros((3, 3))
+    jac[:2, :2] = rot
+    # d(translation)/d(yaw) of M S M^-1 at S = identity: -perp(lever).
+    jac[:2, 2] = np.array([-lever[1], lever[0]]) * -1.0
+    jac[2, 2] = 1.0
+    cov_v = jac @ cov @ jac.T
+    floor = np.diag(
+        [
+            params.registration_floor_m**2,
+            params.registration_floor_m**2,
+            params.registration_floor_rad**2,
+        ]
+    )
+    return sqrt_information(cov_v + floor) * scale
+
+
+def odometry_constraint(
+    i: int, j: int, prior_i: Array, prior_j: Array, dt: float, params: GraphParams
+) -> RelativeConstraint:
+    rel = relative_pose(prior_i, prior_j)
+    sigma_p = params.odometry_sigma_m + params.odometry_velocity_sigma_mps * abs(dt)
+    sigma_a = params.odometry_sigma_rad + params.odometry_rate_sigma_rps * abs(dt)
+    return RelativeConstraint(
+        i,
+        j,
+        rel.forward_m,
+        rel.starboard_m,
+        rel.yaw_rad,
+        diagonal_sqrt_info((sigma_p, sigma_p, sigma_a)),
+        kind="odometry",
+    )
+
+
+def chain_constraints(
+    times: Array,
+    accepted: npt.NDArray[np.bool_],
+    edges: Sequence[Edge],
+    outcomes: Sequence[FrameOutcome],
+    priors: Array,
+    mount: SonarMount,
+    params: GraphParams,
+) -> tuple[npt.NDArray[np.int64], list[RelativeConstraint]]:
+    """The nodes (indices of the accepted frames with a prior) and the constraints between
+    consecutive nodes, in node numbering: a registration where one joins them, an odometry
+    bridge otherwise."""
+    nodes = np.flatnonzero(accepted & np.all(np.isfinite(priors), axis=1)).astype(np.int64)
+    position = {int(k): i for i, k in enumerate(nodes)}
+    by_j = {e.j: e for e in edges}
+    constraints: list[RelativeConstraint] = []
+    for a in range(1, nodes.size):
+        k_prev, k = int(nodes[a - 1]), int(nodes[a])
+        edge = by_j.get(k)
+        if edge is not None and edge.i == k_prev:
+            constraints.append(
+                RelativeConstraint(
+                    position[edge.i],
+                    position[edge.j],
+                    edge.forward_m,
+                    edge.starboard_m,
+                    edge.yaw_rad,
+                    registration_sqrt_info(
+                        outcomes[k] if k < len(outcomes) else None, mount, params
+                    ),
+                    kind="registration",
+                )
+            )
+        else:
+            constraints.append(
+                odometry_constraint(
+                    a - 1, a, priors[k_prev], priors[k], float(times[k] - times[k_prev]), params
+                )
+            )
+    return nodes, constraints

@@ -1,0 +1,94 @@
+"""Loop closures on a periodic seabed: the false peak one period away is refused, the
+right one taken, and a closure set that fits no prediction is left out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapping.closures import (
+    ClosureCandidate,
+    ClosureHypothesis,
+    ClosureParams,
+    ClosureReport,
+    select_closures,
+)
+from mapping.fmt import RelativePose
+from mapping.frames import relative_pose
+from mapping.fusion import Fusion
+from tests.mapping.test_fusion import _survey
+
+PERIOD_M = 1.0  # quadrat rows, farm racks
+COV = np.diag([0.02**2, 0.02**2, math.radians(0.3) ** 2])
+
+
+@pytest.fixture(scope="module")
+def solved():
+    times, truth, data, constraints, initial = _survey(5.0, seed=5)
+    fusion = Fusion(times, data)
+    solution, _ = fusion.solve(initial, constraints)
+    return times, truth, fusion, solution
+
+
+def _lane_pairs(times: np.ndarray, truth: np.ndarray) -> list[tuple[int, int]]:
+    """Frames of lane 0 and the frame of lane 1 nearest each (beside it, 4 m away)."""
+    lane0 = np.flatnonzero((truth[:, 0] < 0.1) & (truth[:, 1] > 4) & (truth[:, 1] < 16))
+    lane1 = np.flatnonzero(np.abs(truth[:, 0] - 4.0) < 0.1)
+    pairs = []
+    for i in lane0[::10]:
+        j = lane1[np.argmin(np.abs(truth[lane1, 1] - truth[i, 1]))]
+        pairs.append((int(i), int(j)))
+    return pairs
+
+
+def _hypothesis(truth: np.ndarray, i: int, j: int, along_m: float, score: float):
+    rel = relative_pose(truth[i], truth[j])
+    # One period along the row direction (north), expressed in frame i.
+    psi = truth[i, 2]
+    d_fwd, d_stb = along_m * math.cos(psi), -along_m * math.sin(psi)
+    return ClosureHypothesis(
+        RelativePose(rel.forward_m + d_fwd, rel.starboard_m + d_stb, rel.yaw_rad), COV, score
+    )
+
+
+def _candidates(times, truth, offsets_scores):
+    out = []
+    for i, j in _lane_pairs(times, truth):
+        hyps = tuple(_hypothesis(truth, i, j, off, sc) for off, sc in offsets_scores)
+        out.append(ClosureCandidate(i, j, float(times[i]), float(times[j]), hyps))
+    return out
+
+
+def test_the_right_peak_is_chosen_over_a_stronger_one_a_period_away(solved) -> None:
+    times, truth, fusion, solution = solved
+    candidates = _candidates(times, truth, [(PERIOD_M, 0.5), (0.0, 0.4)])
+    report = ClosureReport()
+    kept = select_closures(fusion, solution.poses, candidates, ClosureParams(), report)
+    assert len(kept) == len(candidates) > 3
+    for c, k in zip(candidates, kept, strict=True):
+        rel = relative_pose(truth[c.i], truth[c.j])
+        assert math.hypot(k.forward_m - rel.forward_m, k.starboard_m - rel.starboard_m) < 1e-6
+
+
+def test_only_false_peaks_are_refused(solved) -> None:
+    times, truth, fusion, solution = solved
+    candidates = _candidates(times, truth, [(PERIOD_M, 0.5), (-PERIOD_M, 0.45)])
+    report = ClosureReport()
+    kept = select_closures(fusion, solution.poses, candidates, ClosureParams(), report)
+    assert kept == []
+    assert report.rejected_gate + report.rejected_ambiguous == len(candidates)
+
+
+def test_a_lone_inconsistent_closure_is_outvoted(solved) -> None:
+    times, truth, fusion, solution = solved
+    candidates = _candidates(times, truth, [(0.0, 0.4)])
+    bad = candidates[2]
+    candidates[2] = ClosureCandidate(
+        bad.i, bad.j, bad.time_i, bad.time_j, (_hypothesis(truth, bad.i, bad.j, 0.3, 0.6),)
+    )
+    report = ClosureReport()
+    kept = select_closures(fusion, solution.poses, candidates, ClosureParams(), report)
+    assert len(kept) == len(candidates) - 1
+    assert all((k.i, k.j) != (bad.i, bad.j) for k in kept)
