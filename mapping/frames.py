@@ -59,6 +59,21 @@ class SonarMount:
         m = self.matrix()
         return RelativePose.from_matrix(m @ sonar.matrix() @ np.linalg.inv(m))
 
+    def vehicle_covariance(self, sonar: Array) -> Array:
+        """Covariance (3 x 3, forward m, starboard m, yaw rad) of ``vehicle_relative``'s
+        result from that of its sonar-frame input, to first order about no motion:
+        M S M^-1 turns the translation by the mount yaw and adds (l_y, -l_x) per radian
+        of yaw (l the lever arm)."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        jac = np.array(
+            [
+                [c, -s, self.starboard_m],
+                [s, c, -self.forward_m],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        return np.asarray(jac @ np.asarray(sonar, float) @ jac.T, float)
+
     def sonar_relative(self, vehicle: RelativePose) -> RelativePose:
         """Sonar-frame relative pose from a vehicle-frame one: M^-1 V M."""
         m = self.matrix()
@@ -93,8 +108,6 @@ class RegistrationParams:
     max_gap_s: float = 1.5
     """Register against the last accepted frame only while it is this recent; after a
     longer run of rejections the chain restarts (the next frame is kept on its prior)."""
-    guided_search: bool = True
-    """Search the translation peak only within tau_p of the EKF's prediction."""
 
 
 @dataclass
@@ -201,8 +214,10 @@ class LocalRegistration:
         else:
             expected_vehicle = relative_pose(last_prior, prior)
         expected_sonar = self.mount.sonar_relative(expected_vehicle)
-        search = self.params.tau_p_m if self.params.guided_search else None
-        reg = self.registrar.register(last_prepared, prepared, expected_sonar, search)
+        # The whole correlation surface is searched; the prediction weighs its peaks.
+        reg = self.registrar.register(
+            last_prepared, prepared, expected_sonar, prior_sigma_m=self.params.tau_p_m
+        )
         measured = self.mount.vehicle_relative(reg.relative)
         delta_p = math.hypot(
             measured.forward_m - expected_vehicle.forward_m,

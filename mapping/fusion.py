@@ -308,7 +308,7 @@ def _relative_factors(
     b.add(np.broadcast_to(rows, jw.shape), np.broadcast_to(cols, jw.shape), jw)
 
 
-def _relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
+def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
     """Squared Mahalanobis residual of each constraint at ``poses``."""
     if not constraints:
         return np.zeros(0)
@@ -545,7 +545,7 @@ class Fusion:
         iterations = 0
         for iterations in range(1, p.max_iterations + 1):  # noqa: B007
             if robust.any():
-                sq = _relative_chi2(self.frame_poses(x), constraints)
+                sq = relative_chi2(self.frame_poses(x), constraints)
                 # Cauchy: w = 1 / (1 + e^2 / c^2), e the Mahalanobis residual.
                 weights = np.where(robust, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0)
             residual, jac, _ = self._build(x, constraints, weights)
@@ -621,8 +621,3 @@ class Fusion:
             )
             out[m] = jr @ block @ jr.T
         return out
-
-
-def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
-    """Squared Mahalanobis residual of each constraint at ``poses`` (public form)."""
-    return _relative_chi2(poses, constraints)

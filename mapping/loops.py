@@ -23,7 +23,6 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
-from mapping.fmt import FmtRegistrar, PreparedFrame, Registration, RelativePose
 from mapping.frames import LocalRegistration, SonarMount, relative_pose
 from mapping.samples import Ping
 
@@ -40,7 +39,8 @@ class LoopParams:
     stride: int = 4
     """At most one closure per this many frames of each pass over a place."""
     search_m: float = 1.0
-    """Translation searched around the prior (the GPS's relative error between lanes)."""
+    """Sigma of the prior's translation (the GNSS's relative error between lanes): it
+    weighs the correlation peaks, the whole surface is searched."""
     min_score: float = 0.08
     hypotheses: int = 4
     """Distinct correlation peaks kept per candidate pair (periodic seabeds)."""
@@ -184,14 +184,21 @@ def register_hypotheses(
                 continue
             report.candidates += 1
             prior = relative_pose(sonar[i], sonar[index])
-            reg = _register_far(registrar, registrar.prepare(earlier), image, prior, params)
+            reg = registrar.register_far(
+                registrar.prepare(earlier),
+                image,
+                prior,
+                prior_sigma_m=params.search_m,
+                n_hypotheses=params.hypotheses,
+            )
             report.registered += 1
             found: list[ClosureHypothesis] = []
-            for rel, cov, score in _hypotheses_of(reg):
-                if score < params.min_score:
+            for hyp in reg.hypotheses or (reg,):
+                if hyp.score < params.min_score:
                     continue
-                vehicle = mount.vehicle_relative(rel)
-                found.append(ClosureHypothesis(vehicle, _vehicle_cov(cov, params), score))
+                vehicle = mount.vehicle_relative(hyp.relative)
+                cov = _closure_cov(hyp.covariance, mount, params)
+                found.append(ClosureHypothesis(vehicle, cov, float(hyp.score)))
             if not found:
                 report.rejected_score += 1
                 continue
@@ -201,31 +208,9 @@ def register_hypotheses(
     return out
 
 
-def _register_far(
-    registrar: FmtRegistrar,
-    earlier: PreparedFrame,
-    later: npt.NDArray[np.float32],
-    prior: RelativePose,
-    params: LoopParams,
-) -> Registration:
-    try:
-        return registrar.register_far(
-            earlier, later, prior, params.search_m, n_hypotheses=params.hypotheses
-        )  # type: ignore[call-arg,unused-ignore]
-    except TypeError:
-        return registrar.register_far(earlier, later, prior, params.search_m)
-
-
-def _hypotheses_of(reg: Registration) -> list[tuple[RelativePose, Array | None, float]]:
-    """(relative pose, covariance or None, score) of each peak, best first."""
-    extra = getattr(reg, "hypotheses", ()) or ()
-    if extra:
-        return [(h.relative, getattr(h, "covariance", None), float(h.score)) for h in extra]
-    return [(reg.relative, getattr(reg, "covariance", None), float(reg.score))]
-
-
-def _vehicle_cov(cov: Array | None, params: LoopParams) -> Array:
-    """A closure's covariance: the registrar's (with a floor) or the default sigmas."""
+def _closure_cov(cov: Array | None, mount: SonarMount, params: LoopParams) -> Array:
+    """A closure's covariance in the vehicle frame: the registrar's (moved through the
+    mount, with a floor) or the default sigmas."""
     floor = np.diag(
         [
             params.sigma_floor_m**2,
@@ -235,4 +220,4 @@ def _vehicle_cov(cov: Array | None, params: LoopParams) -> Array:
     )
     if cov is None:
         return np.diag([params.sigma_m**2, params.sigma_m**2, math.radians(params.sigma_deg) ** 2])
-    return np.asarray(cov, float) + floor
+    return mount.vehicle_covariance(cov) + floor

@@ -203,7 +203,6 @@ class StreamingEngine:
         self._pending_heading: HeadingSample | None = None
         # Per frame, survey-long but small (a few numbers a frame).
         self.times: list[float] = []
-        self.priors: list[Array] = []
         self.poses: list[Array] = []
         self.outcomes: list[FrameOutcome] = []
         self.edges: list[Edge] = []
@@ -378,7 +377,6 @@ class StreamingEngine:
         outcome = self.local.register(index, ping.time, sonar_frame, prior, odometry)
         started = stats.time("registration", started)
         self.times.append(ping.time)
-        self.priors.append(prior if prior is not None else np.full(3, np.nan))
         self.outcomes.append(outcome)
         if not outcome.accepted:
             stats.frames_rejected += 1

@@ -94,23 +94,12 @@ def registration_sqrt_info(
     registrar's own covariance when it gives one, moved through the mount, with a floor;
     else the defaults."""
     reg = outcome.registration if outcome is not None else None
-    cov = getattr(reg, "covariance", None) if reg is not None else None
+    cov = reg.covariance if reg is not None else None
     scale = math.sqrt(params.registration_scale)
     if cov is None or not params.use_registrar_covariance:
         fwd, stb = params.registration_sigma_m
         return diagonal_sqrt_info((fwd, stb, params.registration_sigma_rad)) * scale
-    cov = np.asarray(cov, float)
-    # The vehicle-frame relative pose is M S M^-1: to first order a rotation of the
-    # translation by the mount yaw and a lever-arm term in yaw.
-    c, s = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
-    lever = np.array([mount.forward_m, mount.starboard_m])
-    rot = np.array([[c, -s], [s, c]])
-    jac = np.zeros((3, 3))
-    jac[:2, :2] = rot
-    # d(translation)/d(yaw) of M S M^-1 at S = identity: -perp(lever).
-    jac[:2, 2] = np.array([-lever[1], lever[0]]) * -1.0
-    jac[2, 2] = 1.0
-    cov_v = jac @ cov @ jac.T
+    cov_v = mount.vehicle_covariance(cov)
     floor = np.diag(
         [
             params.registration_floor_m**2,

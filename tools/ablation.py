@@ -80,7 +80,11 @@ def lambda_table(
     base = pipeline_params(config)
     out: dict[float, dict[str, float]] = {}
     for lam in lambdas:
-        params = dataclasses.replace(base, optimiser=dataclasses.replace(base.optimiser, lam=lam))
+        # Single-stage weighs registrations by their covariance; lambda / 1e4 scales it.
+        graph = dataclasses.replace(base.single_stage.graph, registration_scale=lam / 1e4)
+        params = dataclasses.replace(
+            base, single_stage=dataclasses.replace(base.single_stage, graph=graph)
+        )
         report = replay(
             survey / "sonar.oculus", survey / "nav.tlog", survey / "site.toml", "single-stage",
             survey / f"lambda-{lam:g}", truth=survey / "truth.json", params=params,
