@@ -2,8 +2,9 @@
 
 The event loop only hands things over (``pose``, ``status``, ``tile``, ``final_tiles``):
 each goes into a latest-wins slot and wakes the publisher's own thread, which encodes the
-PNGs and puts. Puts use congestion control DROP, so a slow shore loses stale poses
-instead of queueing them, and nothing ever waits on the network.
+PNGs and puts. Live puts use congestion control DROP, so a slow shore loses stale poses
+instead of queueing them, and the publisher thread never waits on the network; only the
+final tiles, put once from the survey-end pass's thread, wait for the link.
 
 Queries arrive on zenoh's threads and are handed to the same thread (no work inside a
 zenoh callback): a ``get`` on ``seamap/{vehicle}/survey/{survey}/tile/**`` (or any part of
@@ -14,6 +15,11 @@ loop, where the daemon lives.
 
 Tile versions are millisecond UNIX times, forced to grow per tile: they keep growing
 across daemon restarts, so a shore that held a tile before a crash takes the new one.
+
+At survey end the final tiles replace the live ones: every tile the live map published
+is republished, empty (all "no data") where the survey-end pass put nothing, since the
+contract has no tile deletes and a shore would otherwise keep a stale live tile beside
+the final mosaic. Once a survey's final tiles are out, no live tile of it follows them.
 The session comes and goes (``attach``/``detach``, by the daemon's supervised zenoh task);
 the caches do not, so a shore reconnecting after an outage catches up with a ``get``.
 """
@@ -86,6 +92,11 @@ class ZenohPublisher:
         self._pose: bytes | None = None
         self._status: bytes | None = None
         self._pending_tiles: dict[tuple[str, tuple[int, int]], TileUpdate] = {}
+        self._finished: set[str] = set()
+        """Surveys whose final tiles are out; their live tiles are dropped."""
+        self._tile_order = threading.Lock()
+        """Held while tiles are stored and put, so a live tile in flight cannot pass the
+        final ones."""
         self._queries: list[Any] = []
         self._tiles: dict[str, dict[tuple[int, int], _Tile]] = {}
         self._lock = threading.Lock()  # guards _tiles
@@ -152,6 +163,8 @@ class ZenohPublisher:
 
     def tile(self, survey: str, update: TileUpdate) -> None:
         with self._wake:
+            if survey in self._finished:
+                return
             self._pending_tiles[(survey, update.key)] = update
             self._wake.notify()
 
@@ -161,29 +174,29 @@ class ZenohPublisher:
             self._tiles.pop(survey, None)
 
     def final_tiles(self, survey: str, survey_dir: Path) -> int:
-        """Cut the survey's final ``mosaic.tif`` into tiles, keep them in ``tiles/`` for
-        later queries and publish them (newer versions than any live tile). Runs on the
-        caller's thread (the survey-end pass's); returns the number of tiles."""
-        tiles = cut_mosaic(survey_dir / "mosaic.tif")
-        if not tiles:
-            return 0
-        with self._lock:
-            held = dict(self._tiles.get(survey, {}))
-        out: dict[tuple[int, int], _Tile] = {}
-        stamp = _version_now()
-        for key, (values, info) in tiles.items():
-            previous = held.get(key)
-            version = max(stamp, previous.info.version + 1 if previous else 0)
-            info = TileInfo(info.epsg, info.res_m, info.west, info.north, info.size_px, version)
-            out[key] = _Tile(zenoh_io.encode_tile(values), info)
-        write_tiles(survey_dir / TILES_DIR, out)
-        with self._lock:
-            self._tiles[survey] = out
-        with self._wake:
-            session = self._session
-        if session is not None:
-            for key, tile in out.items():
-                self._put_tile(session, survey, key, tile)
+        """Cut the survey's final ``mosaic.tif`` into tiles, add an empty tile for every
+        live tile it leaves out, keep them in ``tiles/`` for later queries and publish
+        them (newer versions than any live tile); the survey's live tiles stop here. Runs
+        on the caller's thread (the survey-end pass's); returns the number of tiles."""
+        with self._tile_order:
+            with self._wake:
+                self._finished.add(survey)
+                for pending in [k for k in self._pending_tiles if k[0] == survey]:
+                    del self._pending_tiles[pending]  # superseded before it was put
+            with self._lock:
+                held = dict(self._tiles.get(survey, {}))
+            out = _final_set(cut_mosaic(survey_dir / "mosaic.tif"), held, _version_now())
+            if not out:
+                return 0
+            write_tiles(survey_dir / TILES_DIR, out)
+            with self._lock:
+                self._tiles[survey] = out
+            with self._wake:
+                session = self._session
+            if session is not None:
+                for key, tile in out.items():
+                    # Sent once and never replaced: wait for the link rather than drop.
+                    self._put_tile(session, survey, key, tile, zenoh.CongestionControl.BLOCK)
         return len(out)
 
     # --- zenoh callbacks (zenoh threads): hand over only -----------------------------------
@@ -230,24 +243,35 @@ class ZenohPublisher:
                 if self._closed:
                     return
                 session = self._session
-                pose = status = None
-                if session is not None:  # otherwise they wait (latest wins) for a session
-                    pose, self._pose = self._pose, None
-                    status, self._status = self._status, None
                 pending, self._pending_tiles = self._pending_tiles, {}
                 queries, self._queries = self._queries, []
-            if session is not None:
-                v = self.vehicle
-                if pose is not None and self._put(session, zenoh_io.pose_key(v), pose):
-                    self.stats.poses += 1
-                if status is not None and self._put(session, zenoh_io.status_key(v), status):
-                    self.stats.statuses += 1
-            for (survey, key), update in pending.items():
-                tile = self._store(survey, update)
-                if session is not None:
-                    self._put_tile(session, survey, key, tile)
+            self._put_pose_and_status(session)
+            with self._tile_order:
+                for (survey, key), update in pending.items():
+                    if survey in self._finished:
+                        continue  # its final tiles went out while this one waited
+                    tile = self._store(survey, update)
+                    if session is not None:
+                        self._put_tile(session, survey, key, tile)
+                    # A pose handed over meanwhile goes out now, not behind the other
+                    # tiles' encoding (where the next one would replace it).
+                    self._put_pose_and_status(session)
             for query in queries:
                 self._answer(query)
+
+    def _put_pose_and_status(self, session: zenoh.Session | None) -> None:
+        """Put the pose and status waiting, if any (without a session they wait, latest
+        wins, for one)."""
+        if session is None:
+            return
+        with self._wake:
+            pose, self._pose = self._pose, None
+            status, self._status = self._status, None
+        v = self.vehicle
+        if pose is not None and self._put(session, zenoh_io.pose_key(v), pose):
+            self.stats.poses += 1
+        if status is not None and self._put(session, zenoh_io.status_key(v), status):
+            self.stats.statuses += 1
 
     def _store(self, survey: str, update: TileUpdate) -> _Tile:
         with self._lock:
@@ -267,7 +291,7 @@ class ZenohPublisher:
             session.put(
                 key,
                 payload,
-                congestion_control=zenoh.CongestionControl.DROP,
+                congestion_control=kw.pop("congestion_control", zenoh.CongestionControl.DROP),
                 encoding=kw.pop("encoding", zenoh.Encoding.APPLICATION_JSON),
                 **kw,
             )
@@ -278,7 +302,12 @@ class ZenohPublisher:
             return False
 
     def _put_tile(
-        self, session: zenoh.Session, survey: str, key: tuple[int, int], tile: _Tile
+        self,
+        session: zenoh.Session,
+        survey: str,
+        key: tuple[int, int],
+        tile: _Tile,
+        congestion: zenoh.CongestionControl = zenoh.CongestionControl.DROP,
     ) -> None:
         if self._put(
             session,
@@ -286,6 +315,7 @@ class ZenohPublisher:
             tile.png,
             encoding=zenoh.Encoding.IMAGE_PNG,
             attachment=tile.info.to_json(),
+            congestion_control=congestion,
         ):
             self.stats.tiles += 1
 
@@ -332,6 +362,29 @@ class ZenohPublisher:
 
 def _version_now() -> int:
     return int(time.time() * 1000)
+
+
+def _final_set(
+    final: dict[tuple[int, int], tuple[npt.NDArray[np.uint8], TileInfo]],
+    live: dict[tuple[int, int], _Tile],
+    stamp: int,
+) -> dict[tuple[int, int], _Tile]:
+    """The tiles that replace a survey's ``live`` ones: the ``final`` mosaic's, and an
+    empty tile for each live tile the final mosaic has no data in; each versioned after
+    ``stamp`` (ms) and after the live tile it replaces."""
+    out: dict[tuple[int, int], _Tile] = {}
+    for key in sorted(final.keys() | live.keys()):
+        previous = live.get(key)
+        version = max(stamp, previous.info.version + 1 if previous else 0)
+        if key in final:
+            values, info = final[key]
+        else:
+            assert previous is not None
+            info = previous.info
+            values = np.zeros((info.size_px, info.size_px), np.uint8)
+        info = TileInfo(info.epsg, info.res_m, info.west, info.north, info.size_px, version)
+        out[key] = _Tile(zenoh_io.encode_tile(values), info)
+    return out
 
 
 def cut_mosaic(path: Path) -> dict[tuple[int, int], tuple[npt.NDArray[np.uint8], TileInfo]]:

@@ -118,7 +118,15 @@ def assemble(
     tiles: TileGrid, rendered: dict[TileKey, npt.NDArray[np.uint8]]
 ) -> tuple[npt.NDArray[np.uint8], tuple[float, float]]:
     """One north-up uint8 image of rendered tiles (0 = no data, data 1..255) and the UTM
-    (west, north) of its top-left corner."""
+    (west, north) of its top-left corner.
+
+    The image spans the tiles that hold data: a tile without any (a fan that only grazed
+    it, or one emptied when the survey-end pass placed the frames elsewhere) neither
+    widens it nor shifts its corner, so the result folder's mosaic and a shore's mosaic
+    of the same tiles have one extent whichever empty tiles either holds. Only when no
+    tile holds data does the image span them all."""
+    with_data = {key: values for key, values in rendered.items() if values.any()}
+    rendered = with_data or rendered
     if not rendered:
         return np.zeros((0, 0), np.uint8), (0.0, 0.0)
     cols = [k[0] for k in rendered]

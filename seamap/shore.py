@@ -317,8 +317,9 @@ class ShoreStation:
         until: Callable[[ShoreStation], bool] | None = None,
     ) -> bool:
         """Apply what arrives, show the status line and write the files at their cadence,
-        until ``stop``, ``duration_s`` seconds, or ``until(self)`` holds; then write what
-        changed one last time. True when ``until`` was met."""
+        until ``stop``, ``duration_s`` seconds, or ``until(self)`` holds; then (unless
+        ``until`` was met) apply what has already arrived, and write what changed one last
+        time. True when ``until`` was met."""
         self.open()
         end = math.inf if duration_s is None else self._clock() + duration_s
         met = False
@@ -336,9 +337,23 @@ class ShoreStation:
             except queue.Empty:
                 continue
             self._apply(item)
+        if not met:  # the station ends
+            self._drain()
         self.write_files()
         self._console.status(self.status_line(), final=True)
         return met
+
+    def _drain(self) -> None:
+        """Apply what has already arrived (a boat's final tiles just before a SIGTERM), so
+        the last files hold it; liveliness changes are left: no catch-up on the way out.
+        Only what is queued now: a boat that keeps publishing cannot hold the station."""
+        for _ in range(self._inbox.qsize()):
+            try:
+                item = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if item.via is not _Via.LIVELINESS:
+                self._apply(item)
 
     def catch_up(self, vehicle: str | None = None) -> None:
         """Ask for every current tile of ``vehicle`` (default: the vehicles followed) of
@@ -515,7 +530,7 @@ class ShoreStation:
         return self._state.tiles(vehicle, survey)
 
     def mosaic(self, vehicle: str, survey: str) -> Mosaic | None:
-        """The survey's tiles as one image spanning them (None without tiles)."""
+        """The survey's tiles as one image spanning those with data (None without tiles)."""
         return self._state.mosaic(vehicle, survey)
 
     def track(self, vehicle: str) -> list[TrackPoint]:

@@ -89,16 +89,20 @@ class HeldSurvey:
     too_big_told: bool = False
 
     def mosaic_px(self) -> int:
-        """Pixels of the mosaic spanning the tiles (0 without tiles), before assembling it."""
+        """Pixels of the mosaic (0 without tiles), before assembling it: like the mosaic,
+        it spans the tiles that hold data (all of them when none does)."""
         if not self.tiles:
             return 0
-        cols = [key[0] for key in self.tiles]
-        rows = [key[1] for key in self.tiles]
+        keys = [key for key, tile in self.tiles.items() if tile.values.any()] or list(self.tiles)
+        cols = [key[0] for key in keys]
+        rows = [key[1] for key in keys]
         size = next(iter(self.tiles.values())).info.size_px
         return (max(cols) - min(cols) + 1) * (max(rows) - min(rows) + 1) * size * size
 
     def mosaic(self) -> Mosaic | None:
-        """The tiles as one image spanning them (None without tiles)."""
+        """The tiles as one image spanning those with data (``mapping.mosaic.assemble``;
+        an empty tile is the boat saying a live tile holds nothing any more); None
+        without tiles."""
         if not self.tiles:
             return None
         info = next(iter(self.tiles.values())).info
@@ -210,7 +214,7 @@ class ShoreState:
         return dict(held.surveys[survey].tiles)
 
     def mosaic(self, vehicle: str, survey: str) -> Mosaic | None:
-        """The survey's tiles as one image spanning them (None without tiles)."""
+        """The survey's tiles as one image spanning those with data (None without tiles)."""
         held = self.vehicles.get(vehicle)
         if held is None or survey not in held.surveys:
             return None

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import signal
 import sys
@@ -38,6 +39,9 @@ from tools.sim import simulate
 
 VEHICLE = "demo"
 SEAMAP = str(Path(sys.executable).parent / "seamap")
+SHORE_WAIT_S = 30.0
+"""How long the shore may take to hold the final tiles and rewrite its mosaic (it writes
+every 5 s)."""
 
 
 @dataclass(frozen=True)
@@ -103,7 +107,8 @@ async def _live(options: DemoOptions, sim: Path) -> int:
             survey = await asyncio.to_thread(_stop_survey, options.zenoh_listen)
             folder = state_dir / "surveys" / survey
             final = await _wait_done(folder, daemon)
-            await asyncio.sleep(3.0)  # the shore takes the final tiles and rewrites its mosaic
+            shore_tif = shore_dir / VEHICLE / survey / "mosaic.tif"
+            same = await _wait_shore(shore_tif, folder / "mosaic.tif", SHORE_WAIT_S)
         finally:
             for child in (shore, daemon):
                 if child.returncode is None:
@@ -114,7 +119,7 @@ async def _live(options: DemoOptions, sim: Path) -> int:
     print(f"      {result['frames_mapped']} of {result['frames_read']} frames mapped "
           f"({live} live), survey-end pass {result['seconds']:.1f} s")  # fmt: skip
     print(f"      result folder: {folder} (mosaic.tif, mosaic.png, trajectory.csv, report.json)")
-    _compare_shore(shore_dir / VEHICLE / survey / "mosaic.tif", folder / "mosaic.tif")
+    _tell_shore(shore_tif, same)
     _step(5, "accuracy against the simulator's truth")
     _accuracy(sim, folder, load_config(config), out / "accuracy")
     print(f"demo output in {out.resolve()} (daemon exit {codes[1]}, shore exit {codes[0]})")
@@ -213,14 +218,32 @@ async def _wait_done(folder: Path, daemon: asyncio.subprocess.Process) -> dict[s
         await asyncio.sleep(0.5)
 
 
-def _compare_shore(shore_tif: Path, boat_tif: Path) -> None:
+async def _wait_shore(shore_tif: Path, boat_tif: Path, timeout_s: float) -> bool:
+    """Whether the shore's mosaic becomes the daemon's within ``timeout_s``: the final
+    tiles cross zenoh and the shore rewrites its files at its own cadence."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if await asyncio.to_thread(_same_mosaic, shore_tif, boat_tif):
+            return True
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.5)
+
+
+def _same_mosaic(shore_tif: Path, boat_tif: Path) -> bool:
+    try:
+        with rasterio.open(shore_tif) as a, rasterio.open(boat_tif) as b:
+            same_grid = a.transform == b.transform and a.shape == b.shape and a.crs == b.crs
+            return same_grid and bool(np.array_equal(a.read(1), b.read(1)))
+    except rasterio.RasterioIOError:  # not written yet
+        return False
+
+
+def _tell_shore(shore_tif: Path, same: bool) -> None:
     if not shore_tif.is_file():
         print(f"      shore mosaic: not written ({shore_tif} missing; see shore.log)")
         return
-    with rasterio.open(shore_tif) as a, rasterio.open(boat_tif) as b:
-        same_grid = a.transform == b.transform and a.shape == b.shape and a.crs == b.crs
-        equal = same_grid and bool(np.array_equal(a.read(1), b.read(1)))
-    verdict = "identical to the daemon's" if equal else "DIFFERS from the daemon's"
+    verdict = "identical to the daemon's" if same else "DIFFERS from the daemon's"
     print(f"      shore mosaic: {shore_tif} ({verdict})")
 
 
@@ -239,6 +262,6 @@ def _accuracy(sim: Path, folder: Path, config: Any, out: Path) -> None:
     trajectory, spacing = accuracy["trajectory"], accuracy.get("quadrat_spacing")
     print(f"      trajectory error {trajectory['rmse']:.2f} m (GPS-limited), "
           f"{trajectory['aligned_rmse']:.3f} m in shape")  # fmt: skip
-    if spacing and spacing.get("located"):
+    if spacing and spacing.get("located") and math.isfinite(spacing["rmse"]):
         print(f"      quadrat spacing RMSE {spacing['rmse'] * 100:.1f} cm over "
               f"{int(spacing['located'])} quadrats")  # fmt: skip
