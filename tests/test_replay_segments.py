@@ -62,7 +62,7 @@ def split_tlog(whole: Path, first: Path, second: Path, at: float) -> None:
 def survey(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated survey, and in ``segments/`` the same logs as two daemon segments."""
     folder = tmp_path_factory.mktemp("survey")
-    simulate("quadrats", 2, folder, max_pings=160, n_beams=256)
+    simulate("quadrats", 2, folder, max_pings=120, n_beams=256)
     segments = folder / "segments"
     segments.mkdir()
     at = split_oculus(folder / "sonar.oculus", segments / sonar_name(1), segments / sonar_name(2))

@@ -27,7 +27,8 @@ from tests.daemon.harness import DaemonProcess, write_config
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
 
-PINGS = 1000  # 100 s of survey; the faults' times below are seconds into it
+PING_RATE_HZ = 5.0  # the field day's sonar
+PINGS = 550  # 110 s of survey; the faults' times below are seconds into it
 SONAR_DROP_AT = 8.0
 GARBAGE_AT = 12.0
 GPS_PAUSE = (16.0, 60.0)  # from, for how long
@@ -53,7 +54,7 @@ class Outcome:
 def outcome(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
     root = tmp_path_factory.mktemp("faults")
     sim = root / "sim"
-    simulate("farm", 21, sim, max_pings=PINGS)
+    simulate("farm", 21, sim, max_pings=PINGS, ping_rate_hz=PING_RATE_HZ)
     state_dir = root / "state"
     log_path = root / "daemon.log"
 
@@ -116,7 +117,7 @@ def outcome(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
             )
             outages["killed"] = (killed, time.time())
 
-            await asyncio.wait_for(play.done.wait(), PINGS / 10 + 60)
+            await asyncio.wait_for(play.done.wait(), PINGS / PING_RATE_HZ + 60)
             await second.wait_status(lambda s: s["frames"]["backlog"] == 0, 30)
             await asyncio.sleep(1.5)
             code = await second.stop(signal.SIGTERM, 600)

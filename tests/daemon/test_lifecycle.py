@@ -102,7 +102,7 @@ def test_surveys_open_and_close_on_command(tmp_path: Path) -> None:
 
 def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> None:
     sim = tmp_path / "sim"
-    simulate("quadrats", 2, sim, max_pings=60)
+    simulate("quadrats", 2, sim, max_pings=30)
     config = config_file(tmp_path)
     folder = tmp_path / "state" / "surveys" / "20260101-000000"
     folder.mkdir(parents=True)
