@@ -5,6 +5,7 @@ control socket."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import io
 import logging
 import threading
@@ -25,7 +26,9 @@ from seamap.replay import mount_from_config, pipeline_params
 from tools.sim.stream import survey_events
 
 
+@functools.cache
 def _events(pings: int) -> tuple[list[Any], Any]:
+    """A short simulated survey in arrival order and its site (simulated once a size)."""
     stream = survey_events("quadrats", 4, max_pings=pings, n_beams=128)
     return [sample for _, sample in stream.events], stream.site_config
 
