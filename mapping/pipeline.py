@@ -249,14 +249,15 @@ def map_survey(
     for index, ping in enumerate(pings() if registrations is None else ()):
         if index >= n:
             break
-        t0 = time.perf_counter()
-        sonar_frame = registration.frame(ping)
-        t1 = clock.add("preprocess", t0)
+        t1 = time.perf_counter()
         prior = priors[index] if estimate.valid[index] else None
         if mode is Mode.GPS_ONLY:
+            # Placed by its prior alone: its image is first looked at when blending.
             reason = "" if prior is not None else "no navigation prior"
             outcomes.append(FrameOutcome(index, ping.time, prior is not None, reason))
         else:
+            sonar_frame = registration.frame(ping)
+            t1 = clock.add("preprocess", t1)
             outcomes.append(registration.register(index, ping.time, sonar_frame, prior))
         clock.add("registration", t1)
         if progress is not None:
