@@ -199,7 +199,10 @@ def select_closures(
         for k0, h0 in seeds:
             members: list[tuple[int, int]] = []
             for k in group:
-                best_h, best = -1, math.inf
+                # Of a candidate's hypotheses consistent with the seed, the registrar's
+                # strongest (they come best first), not the nearest: a broad, weak peak
+                # is always near in its own covariance.
+                best_h = -1
                 for h in range(len(live[k].hypotheses)):
                     diff = corr[k][h][:2] - corr[k0][h0][:2]
                     dt = max(
@@ -212,8 +215,9 @@ def select_closures(
                         + drift * np.eye(2)
                     )
                     dist = float(diff @ np.linalg.solve(cov, diff))
-                    if dist < params.consistency_chi2 and dist < best:
-                        best_h, best = h, dist
+                    if dist < params.consistency_chi2:
+                        best_h = h
+                        break
                 if best_h >= 0:
                     members.append((k, best_h))
             gate = float(np.median([d2[k][h] for k, h in members]))

@@ -15,10 +15,10 @@ Navigation*, 2008, Sec. 4.9):
 Variables
     frame poses (x east, y north m; psi rad clockwise from grid north) of the vehicle
     reference point (the GPS antenna); GNSS bias knots (east, north m) on a regular time
-    grid; one gyro yaw-rate bias (rad/s); the compass error's Fourier coefficients in
-    heading (constant, 1 and 2 cycles: a misalignment plus hard- and soft-iron deviation,
-    rad); one time offset (s) between the GNSS fixes and the frame stamps (receiver lag
-    minus sonar latency).
+    grid; the gyro's yaw-rate bias (rad/s) on a coarser grid of knots; the compass
+    error's Fourier coefficients in heading (constant, 1 and 2 cycles: a misalignment
+    plus hard- and soft-iron deviation, rad); one time offset (s) between the GNSS fixes
+    and the frame stamps (receiver lag minus sonar latency).
 Factors
     - relative pose i -> j (registration, odometry bridge, loop closure): the pose of j
       in the frame of i minus the measurement, times its square-root information;
@@ -32,6 +32,7 @@ Factors
       samples count as the few independent ones they are);
     - gyro: psi_j - psi_i - (integral of the yaw rate - g (t_j - t_i)) over the noise
       density times sqrt(t_j - t_i);
+    - gyro bias walk: g_k+1 - g_k over its random-walk sigma for the knot spacing;
     - zero-mean priors on the gyro bias, the compass coefficients and the time offset.
 
 Because nothing is weighted per frame, the solution does not depend on the ping rate;
@@ -97,6 +98,17 @@ class GyroModel:
     floor_rad: float = math.radians(0.02)
     """Added to every factor: stamp jitter and interpolation."""
     bias_sigma_rps: float = math.radians(0.5)
+    """Prior sigma of the bias left after the autopilot's boot calibration."""
+    bias_walk_rps: float = math.radians(0.05)
+    """How far the bias wanders after boot (temperature): a random walk whose variance
+    grows by ``2 bias_walk^2 / bias_walk_tau_s`` a second, the short-term growth of a
+    Gauss-Markov drift of this sigma and correlation time (MEMS gyros on a small boat in
+    the sun: a few hundredths of a degree a second over minutes). A constant bias cannot
+    follow it, and a heading that drifts by a degree a minute between lanes was what the
+    closures' predictions missed."""
+    bias_walk_tau_s: float = 300.0
+    knot_spacing_s: float = 10.0
+    """Spacing of the gyro bias knots (linear in between)."""
     max_gap_s: float = 0.5
     """Frame pairs over an IMU gap longer than this get no gyro factor."""
 
@@ -175,6 +187,10 @@ class FusionSolution:
     bias_times: Array
     bias_xy: Array
     gyro_bias_rps: float
+    """The gyro bias's mean over the survey (rad/s)."""
+    gyro_bias_times: Array
+    gyro_bias_knots: Array
+    """The wandering bias at its knots (rad/s)."""
     compass_coefficients: Array
     """Compass error = c . (1, sin psi, cos psi, sin 2 psi, cos 2 psi), radians."""
     time_offset_s: float
@@ -194,12 +210,13 @@ _N_COMPASS = 5
 
 
 class _Layout:
-    def __init__(self, n: int, n_knots: int) -> None:
+    def __init__(self, n: int, n_knots: int, n_gyro_knots: int) -> None:
         self.n = n
         self.n_knots = n_knots
+        self.n_gyro_knots = n_gyro_knots
         self.bias0 = 3 * n
         self.gyro = self.bias0 + 2 * n_knots
-        self.compass0 = self.gyro + 1
+        self.compass0 = self.gyro + n_gyro_knots
         self.offset = self.compass0 + _N_COMPASS
         self.size = self.offset + 1
 
@@ -347,12 +364,26 @@ class Fusion:
         )
         n_knots = max(2, math.ceil((t1 - t0) / g.knot_spacing_s) + 1)
         self.knot_times: Array = t0 + np.arange(n_knots, dtype=np.float64) * g.knot_spacing_s
-        self.layout = _Layout(n if rigid is None else rigid.n_groups, n_knots)
-        self._frame_layout = _Layout(n, n_knots)
-        # Gyro factors between consecutive frames with a known integral.
+        gm = self.params.gyro
+        n_gyro = max(2, math.ceil((t1 - t0) / gm.knot_spacing_s) + 1)
+        self.gyro_knot_times: Array = t0 + np.arange(n_gyro, dtype=np.float64) * gm.knot_spacing_s
+        self.layout = _Layout(n if rigid is None else rigid.n_groups, n_knots, n_gyro)
+        self._frame_layout = _Layout(n, n_knots, n_gyro)
+        # Gyro factors between consecutive frames with a known integral. Rigid groups
+        # fix the yaw between their own frames: there the gyro spans whole groups, from
+        # one group's first frame to the next's (inside a group it would only fight the
+        # chain it cannot move, and pull the bias to the chain's rotation error).
         yaw = data.yaw_integral
         ok = np.isfinite(yaw[1:]) & np.isfinite(yaw[:-1]) & ~data.yaw_gap[1:]
-        self._gyro_k = np.flatnonzero(ok).astype(np.int64)
+        if rigid is None:
+            self._gyro_a = np.flatnonzero(ok).astype(np.int64)
+            self._gyro_b = self._gyro_a + 1
+        else:
+            first = np.flatnonzero(np.diff(rigid.group, prepend=-1) != 0).astype(np.int64)
+            broken = np.concatenate([[0], np.cumsum(~ok)])  # pairs without a factor, so far
+            a, b = first[:-1], first[1:]
+            whole = broken[b] - broken[a] == 0
+            self._gyro_a, self._gyro_b = a[whole], b[whole]
 
     # -- residuals ------------------------------------------------------------------
     def _build(
@@ -368,7 +399,7 @@ class Fusion:
         n = lay.n
         poses = state[: 3 * n].reshape(n, 3)
         bias = state[lay.bias0 : lay.gyro].reshape(lay.n_knots, 2)
-        gyro_bias = state[lay.gyro]
+        gyro_knots = state[lay.gyro : lay.compass0]
         coeffs = state[lay.compass0 : lay.offset]
         offset = state[lay.offset]
         b = _Builder()
@@ -445,21 +476,36 @@ class Fusion:
             start + np.arange(_N_COMPASS), lay.compass0 + np.arange(_N_COMPASS), 1 / compass_sigmas
         )
 
-        # Gyro yaw increments between consecutive frames.
+        # Gyro yaw increments between consecutive frames, the bias interpolated between
+        # its knots at the pair's middle.
         gm = p.gyro
-        kk = self._gyro_k
+        kk, kb = self._gyro_a, self._gyro_b
+        ng = lay.n_gyro_knots
         if kk.size:
-            dt = self.times[kk + 1] - self.times[kk]
-            measured = d.yaw_integral[kk + 1] - d.yaw_integral[kk]
+            dt = self.times[kb] - self.times[kk]
+            measured = d.yaw_integral[kb] - d.yaw_integral[kk]
             sigma = np.sqrt(gm.noise_density**2 * np.maximum(dt, 0.0) + gm.floor_rad**2)
             inv = 1.0 / sigma
-            raw = _wrap(poses[kk + 1, 2] - poses[kk, 2] - (measured - gyro_bias * dt))
+            middle = 0.5 * (self.times[kb] + self.times[kk])
+            kg = np.clip(
+                np.floor((middle - self.gyro_knot_times[0]) / gm.knot_spacing_s), 0, ng - 2
+            ).astype(np.int64)
+            ug = np.clip((middle - self.gyro_knot_times[kg]) / gm.knot_spacing_s, 0.0, 1.0)
+            gyro_bias = (1 - ug) * gyro_knots[kg] + ug * gyro_knots[kg + 1]
+            raw = _wrap(poses[kb, 2] - poses[kk, 2] - (measured - gyro_bias * dt))
             start = b.block("gyro", inv * raw)
             rows = start + np.arange(kk.size)
-            b.add(rows, 3 * (kk + 1) + 2, inv)
+            b.add(rows, 3 * kb + 2, inv)
             b.add(rows, 3 * kk + 2, -inv)
-            b.add(rows, np.full(kk.size, lay.gyro), inv * dt)
-        start = b.block("gyro_prior", np.array([gyro_bias / gm.bias_sigma_rps]))
+            b.add(rows, lay.gyro + kg, inv * dt * (1 - ug))
+            b.add(rows, lay.gyro + kg + 1, inv * dt * ug)
+        # The bias wanders as a random walk between knots from its boot-calibration prior.
+        step_sigma = gm.bias_walk_rps * math.sqrt(2.0 * gm.knot_spacing_s / gm.bias_walk_tau_s)
+        start = b.block("gyro_walk", np.diff(gyro_knots) / step_sigma)
+        rows = start + np.arange(ng - 1)
+        b.add(rows, lay.gyro + np.arange(1, ng), np.full(ng - 1, 1 / step_sigma))
+        b.add(rows, lay.gyro + np.arange(ng - 1), np.full(ng - 1, -1 / step_sigma))
+        start = b.block("gyro_prior", np.array([gyro_knots[0] / gm.bias_sigma_rps]))
         b.add(np.array([start]), np.array([lay.gyro]), np.array([1 / gm.bias_sigma_rps]))
 
         start = b.block(
@@ -567,7 +613,9 @@ class Fusion:
             poses=self.frame_poses(x),
             bias_times=self.knot_times.copy(),
             bias_xy=x[lay.bias0 : lay.gyro].reshape(lay.n_knots, 2).copy(),
-            gyro_bias_rps=float(x[lay.gyro]),
+            gyro_bias_rps=float(np.mean(x[lay.gyro : lay.compass0])),
+            gyro_bias_times=self.gyro_knot_times.copy(),
+            gyro_bias_knots=x[lay.gyro : lay.compass0].copy(),
             compass_coefficients=x[lay.compass0 : lay.offset].copy(),
             time_offset_s=float(x[lay.offset]),
             iterations=iterations,

@@ -6,7 +6,7 @@ closures chosen robustly (``mapping.closures``)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -21,7 +21,14 @@ from mapping.closures import (
 )
 from mapping.fmt import RelativePose
 from mapping.frames import FrameOutcome, LocalRegistration, SonarMount, compose, relative_pose
-from mapping.fusion import Fusion, FusionParams, FusionSolution, RelativeConstraint, RigidGroups
+from mapping.fusion import (
+    Fusion,
+    FusionParams,
+    FusionSolution,
+    RelativeConstraint,
+    RigidGroups,
+    sqrt_information,
+)
 from mapping.loops import LoopParams, LoopReport, find_candidates, register_hypotheses
 from mapping.navigation import NavInputs
 from mapping.posegraph import Edge
@@ -41,6 +48,9 @@ class SingleStageParams:
     fusion: FusionParams = field(default_factory=FusionParams)
     graph: GraphParams = field(default_factory=GraphParams)
     closures: ClosureParams = field(default_factory=ClosureParams)
+    closure_rounds: int = 2
+    """Closures are chosen this many times, each against the graph the previous choice
+    tied together."""
 
 
 @dataclass
@@ -96,6 +106,8 @@ def single_stage(
     node_times = times[nodes]
     data = fusion_data(inputs, node_times, params.graph.sonar_latency_s)
     rigid = _rigid_groups(chain, nodes.size, rigid_frames) if rigid_frames else None
+    if rigid is not None:
+        chain = _loosen_links(chain, rigid, _internal_drift(rigid, chain, priors[nodes]))
     fusion = Fusion(node_times, data, params.fusion, rigid)
     initial = priors[nodes] if rigid is None else _anchor_priors(priors[nodes], rigid)
     solution, state = fusion.solve(initial, chain)
@@ -117,6 +129,16 @@ def single_stage(
         kept = select_closures(fusion, poses_nodes, candidates, params.closures, report, internal)
         if kept:
             solution, state = fusion.solve(initial, chain + kept, state)
+            # Once the passes are tied, the graph predicts every candidate far better
+            # than the GNSS could: choose again from all of them against that prediction
+            # (a closure taken a period away in the first round falls outside the gate).
+            for _ in range(params.closure_rounds - 1):
+                again = ClosureReport()
+                kept = select_closures(
+                    fusion, solution.poses, candidates, params.closures, again, internal
+                )
+                solution, state = fusion.solve(initial, chain + kept, state)
+                report = again
             kept = prune_closures(solution.poses, kept, params.closures, report)
             solution, state = fusion.solve(initial, chain + kept, state)
         report.kept = len(kept)
@@ -154,6 +176,23 @@ def _rigid_groups(chain: Sequence[RelativeConstraint], n: int, size: int) -> Rig
         rel = relative_pose(chained[first[k]], chained[k])
         offsets[k] = (rel.forward_m, rel.starboard_m, rel.yaw_rad)
     return RigidGroups(group, offsets, int(group[-1]) + 1 if n else 0)
+
+
+def _loosen_links(
+    chain: Sequence[RelativeConstraint], rigid: RigidGroups, internal: Array
+) -> list[RelativeConstraint]:
+    """The constraints that join one submap to the next, with the drift the earlier
+    submap's frozen chain carries at its end added to their covariance: the submap's
+    shape is fixed, its errors are not gone, and a link that did not know of them would
+    hold the next submap to the wrong heading against the gyro and the compass."""
+    out = []
+    for c in chain:
+        if rigid.group[c.i] == rigid.group[c.j]:
+            out.append(c)
+            continue
+        cov = np.linalg.inv(c.sqrt_info.T @ c.sqrt_info) + internal[c.i] + internal[c.j]
+        out.append(replace(c, sqrt_info=sqrt_information(cov)))
+    return out
 
 
 def _anchor_priors(priors: Array, rigid: RigidGroups) -> Array:

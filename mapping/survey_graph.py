@@ -36,15 +36,25 @@ class GraphParams:
 
     registration_sigma_m: tuple[float, float] = (0.008, 0.003)
     """Forward and starboard sigma of a consecutive registration when the registrar
-    gives none: the RMS errors measured on simulated field days (7.5 mm along the look
-    direction, 2.5 mm across)."""
+    gives no covariance (5 Hz on simulated field days: 7.5 mm along the look direction,
+    2.5 mm across)."""
     registration_sigma_rad: float = math.radians(0.12)
-    """Measured: 0.11 degrees RMS per pair (p90 0.18)."""
-    use_registrar_covariance: bool = False
-    """Weigh each registration by the registrar's own covariance (else the measured sigmas)."""
-    registration_floor_m: float = 0.003
-    """Added in quadrature to the registrar's own sigma (interpolation, the model)."""
-    registration_floor_rad: float = math.radians(0.02)
+    use_registrar_covariance: bool = True
+    """Weigh each registration by the registrar's own covariance plus the floor and the
+    motion terms below (else the fixed sigmas above)."""
+    registration_floor_m: tuple[float, float] = (0.0015, 0.0012)
+    """Forward and starboard sigma added to the registrar's own (interpolation, speckle,
+    the projection model)."""
+    registration_floor_rad: float = math.radians(0.05)
+    motion_sigma_mps: tuple[float, float] = (0.025, 0.013)
+    """Forward and starboard sigma per second between the two pings: what the chop moves
+    that the projection does not know of (heave, and the roll and pitch left after the
+    attitude correction). A registration's error grows with the time between its pings:
+    measured on simulated field days (light chop: 2-3 degrees of roll and pitch, 4-5 cm
+    of heave) at 2, 5 and 10 Hz, 3.0 / 7.3 / 12.4 mm forward, 2.0 / 2.7 / 6.7 mm across,
+    0.08 / 0.12 / 0.27 degrees of yaw per pair: floor and motion terms in quadrature fit
+    all three rates, so the chain weighs the same survey the same at any ping rate."""
+    motion_sigma_rps: float = math.radians(0.53)
     odometry_sigma_m: float = 0.02
     """Odometry bridge: sigma at zero span, growing by ``odometry_velocity_sigma_mps`` a
     second (the smoothed filter's velocity error)."""
@@ -88,11 +98,11 @@ def fusion_data(inputs: NavInputs, frame_times: Array, latency_s: float) -> Fusi
 
 
 def registration_sqrt_info(
-    outcome: FrameOutcome | None, mount: SonarMount, params: GraphParams
+    outcome: FrameOutcome | None, mount: SonarMount, params: GraphParams, dt: float
 ) -> Array:
-    """Square-root information of a consecutive registration (vehicle frame): the
-    registrar's own covariance when it gives one, moved through the mount, with a floor;
-    else the defaults."""
+    """Square-root information of a consecutive registration (vehicle frame) spanning
+    ``dt`` seconds: the registrar's own covariance moved through the mount, plus the floor
+    and the motion the chop adds in ``dt``; the fixed sigmas when there is none."""
     reg = outcome.registration if outcome is not None else None
     cov = reg.covariance if reg is not None else None
     scale = math.sqrt(params.registration_scale)
@@ -100,14 +110,16 @@ def registration_sqrt_info(
         fwd, stb = params.registration_sigma_m
         return diagonal_sqrt_info((fwd, stb, params.registration_sigma_rad)) * scale
     cov_v = mount.vehicle_covariance(cov)
-    floor = np.diag(
+    dt = abs(dt)
+    (floor_f, floor_s), (rate_f, rate_s) = params.registration_floor_m, params.motion_sigma_mps
+    extra = np.diag(
         [
-            params.registration_floor_m**2,
-            params.registration_floor_m**2,
-            params.registration_floor_rad**2,
+            floor_f**2 + (rate_f * dt) ** 2,
+            floor_s**2 + (rate_s * dt) ** 2,
+            params.registration_floor_rad**2 + (params.motion_sigma_rps * dt) ** 2,
         ]
     )
-    return sqrt_information(cov_v + floor) * scale
+    return sqrt_information(cov_v + extra) * scale
 
 
 def odometry_constraint(
@@ -155,7 +167,10 @@ def chain_constraints(
                     edge.starboard_m,
                     edge.yaw_rad,
                     registration_sqrt_info(
-                        outcomes[k] if k < len(outcomes) else None, mount, params
+                        outcomes[k] if k < len(outcomes) else None,
+                        mount,
+                        params,
+                        float(times[k] - times[k_prev]),
                     ),
                     kind="registration",
                 )
