@@ -1,20 +1,27 @@
 """Where the live chain sits: a small Kalman filter that ties the registration chain to the
-GNSS and the heading filter without bending it to their wander.
+GNSS, the heading filter and the live loop closures without bending it to their wander.
 
 The live map is the chain of registrations (bridged by the filter's dead reckoning where a
 registration is missing). Left alone the chain drifts; pulled to every fix it copies the
 receiver's wander, and two passes over the same seabed a minute apart then disagree by
 the change of the GNSS bias (a metre). So the chain carries a correction whose model is
-physical (Farrell, *Aided Navigation*, 2008, Sec. 4.9; a complementary filter whose gain
-comes from the noise models): the chain's own drift is a slow random walk
-(``drift_density``), the GNSS error a first-order Gauss-Markov bias (sigma, tau) plus
-white noise. Each fix's residual against the chain updates both; the correction takes up
-only what is slower than the bias, so the live map keeps the chain's shape between lanes.
+physical (Farrell, *Aided Navigation*, 2008, Sec. 4.9 and Ch. 11; an error-state
+complementary filter whose gains come from the noise models):
 
-Translation: states (c_e, c_n, b_e, b_n), metres. Heading: the chain's heading error and
-its rate (a gyro bias the navigation filter has not fully found), against the filter's
-heading (whose own error, a compass bias and its wander, is correlated too: its sigma
-stands for that).
+- state ``(c_e, c_n, b_e, b_n, h, r)``: what to add to the chain's position (metres,
+  east/north), the GNSS receiver's Gauss-Markov bias (metres), what to add to the chain's
+  heading (radians, clockwise) and that heading error's rate (a gyro bias the navigation
+  filter has not fully found, rad/s);
+- the chain's own translation error is a slow random walk (``drift_density``); each
+  chained step ``s`` (east, north) was laid at the heading then estimated, so an error
+  ``dh`` of that heading adds ``(s_n, -s_e) dh`` to the position error: the position and
+  heading corrections are coupled, and a heading error shows as a growing position
+  uncertainty between lanes (a 3 degree compass error over a 16 m lane is 0.8 m);
+- a GNSS fix measures ``c + b`` plus white noise; the navigation filter's heading (its
+  compass) measures ``h`` with a sigma that stands for its correlated deviation;
+- a live loop closure measures ``c`` and ``h`` relative to the already-final map
+  (``update_closure``): where a keyframe's final pose and the registration put the
+  current frame, minus the chain.
 """
 
 from __future__ import annotations
@@ -26,6 +33,12 @@ import numpy as np
 import numpy.typing as npt
 
 Array = npt.NDArray[np.float64]
+
+_C = slice(0, 2)  # correction of the chain's position (east, north)
+_B = slice(2, 4)  # GNSS bias
+_H = 4  # correction of the chain's heading
+_R = 5  # its rate
+_CH = [0, 1, 4]  # what a closure measures
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,25 +61,31 @@ class AnchorParams:
     misalignment and deviation, correlated over minutes)."""
     heading_update_s: float = 1.0
     """Heading residuals are taken at most this often (their errors are correlated)."""
+    initial_heading_sigma_rad: float = math.radians(10.0)
 
 
 class LiveAnchor:
-    """Feed the chain's residuals in time order; read ``correction`` at any time reached."""
+    """Feed the chain's steps and residuals in time order; read ``correction`` and
+    ``heading`` at any time reached."""
 
     def __init__(self, params: AnchorParams | None = None) -> None:
         self.params = params or AnchorParams()
         p = self.params
-        self.x = np.zeros(4)
-        self.P = np.diag([p.initial_sigma_m**2] * 2 + [p.gnss_bias_sigma_m**2] * 2)
+        self.x = np.zeros(6)
+        self.P = np.diag(
+            [p.initial_sigma_m**2] * 2
+            + [p.gnss_bias_sigma_m**2] * 2
+            + [p.initial_heading_sigma_rad**2, p.rate_sigma_rps**2]
+        )
         self.time: float | None = None
-        # Heading: the chain's heading error and its rate (what is left of the gyro bias
-        # after the navigation filter's estimate of it turns the chain steadily).
-        self.heading_x = np.zeros(2)
-        self.heading_P = np.diag([math.radians(10.0) ** 2, p.rate_sigma_rps**2])
-        self._heading_time: float | None = None
         self._last_heading_update = -math.inf
+        self.bends = np.zeros(3)
+        """Sum of the map bends followed (``shift``): a frame drawn earlier keeps the
+        correction of its own place on the map, not the bends met since."""
 
-    def _predict(self, time: float) -> None:
+    # -- time and the chain ---------------------------------------------------------------
+    def predict(self, time: float) -> None:
+        """Advance the state to ``time`` (s); earlier times leave it where it is."""
         p = self.params
         if self.time is None:
             self.time = time
@@ -75,47 +94,113 @@ class LiveAnchor:
         if dt <= 0:
             return
         phi = math.exp(-dt / p.gnss_bias_tau_s)
-        f = np.diag([1.0, 1.0, phi, phi])
-        q = np.diag([p.drift_density**2 * dt] * 2 + [p.gnss_bias_sigma_m**2 * (1 - phi * phi)] * 2)
+        f = np.eye(6)
+        f[2, 2] = f[3, 3] = phi
+        f[_H, _R] = dt
+        q = np.diag(
+            [p.drift_density**2 * dt] * 2
+            + [p.gnss_bias_sigma_m**2 * (1 - phi * phi)] * 2
+            + [p.heading_drift_density**2 * dt, p.rate_walk**2 * dt]
+        )
         self.x = f @ self.x
         self.P = f @ self.P @ f.T + q
         self.time = time
 
-    def update_position(self, time: float, residual_en: tuple[float, float]) -> None:
-        """A fix minus the chain's position at the fix's time (east, north metres)."""
-        self._predict(time)
-        h = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
-        r = np.eye(2) * self.params.gnss_white_sigma_m**2
+    def chain_step(self, step_en: tuple[float, float], sigma_m: float = 0.0) -> None:
+        """The chain moved by ``step_en`` (east, north metres), laid at the heading the
+        anchor estimates now: an error of that heading moves the position error by
+        d(step)/d(heading) = (s_n, -s_e) per radian. The estimate is unchanged (the step
+        used it); the uncertainty grows with the distance along an uncertain heading,
+        and by ``sigma_m`` per axis for a step no registration measured (a bridge)."""
+        f = np.eye(6)
+        f[0, _H] = step_en[1]
+        f[1, _H] = -step_en[0]
+        self.P = f @ self.P @ f.T
+        if sigma_m > 0:
+            self.P[0, 0] += sigma_m**2
+            self.P[1, 1] += sigma_m**2
+
+    # -- measurements ---------------------------------------------------------------------
+    def _update(self, h: Array, innovation: Array, r: Array) -> None:
         s = h @ self.P @ h.T + r
         gain = self.P @ h.T @ np.linalg.inv(s)
-        self.x = self.x + gain @ (np.asarray(residual_en, float) - h @ self.x)
-        self.P = (np.eye(4) - gain @ h) @ self.P
+        self.x = self.x + gain @ innovation
+        i_kh = np.eye(6) - gain @ h
+        # Joseph form: closures can be centimetres against metres of prior.
+        self.P = i_kh @ self.P @ i_kh.T + gain @ r @ gain.T
+
+    def update_position(self, time: float, residual_en: tuple[float, float]) -> None:
+        """A fix minus the chain's position at the fix's time (east, north metres)."""
+        self.predict(time)
+        h = np.zeros((2, 6))
+        h[0, 0] = h[1, 1] = h[0, 2] = h[1, 3] = 1.0
+        r = np.eye(2) * self.params.gnss_white_sigma_m**2
+        self._update(h, np.asarray(residual_en, float) - h @ self.x, r)
 
     def update_heading(self, time: float, residual_rad: float) -> None:
         """The navigation filter's heading minus the chain's (radians)."""
         p = self.params
-        if self._heading_time is not None:
-            dt = max(time - self._heading_time, 0.0)
-            f = np.array([[1.0, dt], [0.0, 1.0]])
-            q = np.diag([p.heading_drift_density**2 * dt, p.rate_walk**2 * dt])
-            self.heading_x = f @ self.heading_x
-            self.heading_P = f @ self.heading_P @ f.T + q
-        self._heading_time = time
+        self.predict(time)
         if time - self._last_heading_update < p.heading_update_s:
             return
         self._last_heading_update = time
-        innovation = math.remainder(residual_rad - float(self.heading_x[0]), 2 * math.pi)
-        s = float(self.heading_P[0, 0]) + p.heading_sigma_rad**2
-        gain = self.heading_P[:, 0] / s
-        self.heading_x = self.heading_x + gain * innovation
-        self.heading_P = self.heading_P - np.outer(gain, self.heading_P[0, :])
+        h = np.zeros((1, 6))
+        h[0, _H] = 1.0
+        innovation = np.array([math.remainder(residual_rad - float(self.x[_H]), 2 * math.pi)])
+        self._update(h, innovation, np.array([[p.heading_sigma_rad**2]]))
 
+    def closure_innovation(self, measured: Array, covariance: Array) -> tuple[Array, Array]:
+        """For a closure's measurement of (c_e, c_n, h) with its covariance (3 x 3): the
+        innovation (heading wrapped) and its covariance against the current state."""
+        nu = np.asarray(measured, float) - self.x[_CH]
+        nu[2] = math.remainder(float(nu[2]), 2 * math.pi)
+        s = self.P[np.ix_(_CH, _CH)] + covariance
+        return nu, s
+
+    def update_closure(self, measured: Array, covariance: Array) -> None:
+        """Apply a closure's measurement of (c_e, c_n, h) (metres, radians) with its
+        covariance (3 x 3), taken as of now."""
+        h = np.zeros((3, 6))
+        h[0, 0] = h[1, 1] = h[2, _H] = 1.0
+        nu, _ = self.closure_innovation(measured, covariance)
+        self._update(h, nu, np.asarray(covariance, float))
+
+    def shift(self, offset: Array) -> None:
+        """Move the correction (c_e, c_n, h) by a known ``offset`` (metres, radians),
+        uncertainty unchanged: the final map the chain is tied to bends there (its own
+        correction changed between two of its frames by this much)."""
+        self.x[_CH] += np.asarray(offset, float)
+        self.bends += np.asarray(offset, float)
+
+    def inflate(self, covariance: Array) -> None:
+        """Add ``covariance`` (3 x 3) to the uncertainty of (c_e, c_n, h): what the
+        correction does not know about the part of the map it is about to be tied to."""
+        self.P[np.ix_(_CH, _CH)] += np.asarray(covariance, float)
+
+    def drift_covariance(self, dt: float, path_en: tuple[float, float]) -> Array:
+        """How much the (c_e, c_n, h) error can change over ``dt`` seconds while the
+        chain moves by ``path_en`` (east, north metres): the random walks, and the
+        heading's uncertainty (with its rate's over ``dt``) turned into position by the
+        path's lever (3 x 3)."""
+        p = self.params
+        heading_var = float(self.P[_H, _H]) + float(self.P[_R, _R]) * dt * dt
+        lever = np.array([path_en[1], -path_en[0]])
+        out = np.zeros((3, 3))
+        out[:2, :2] = p.drift_density**2 * dt * np.eye(2) + heading_var * np.outer(lever, lever)
+        out[2, 2] = p.heading_drift_density**2 * dt + float(self.P[_R, _R]) * dt * dt
+        return out
+
+    # -- what the chain gets ----------------------------------------------------------
     @property
     def heading(self) -> float:
         """What to add to the chain's heading (radians)."""
-        return float(self.heading_x[0])
+        return float(self.x[_H])
 
     @property
     def correction(self) -> tuple[float, float]:
         """What to add to the chain's position (east, north metres)."""
         return float(self.x[0]), float(self.x[1])
+
+    def correction_covariance(self) -> Array:
+        """Covariance of (c_e, c_n, h) (3 x 3)."""
+        return np.asarray(self.P[np.ix_(_CH, _CH)], float)

@@ -1,0 +1,544 @@
+"""Live loop closures: the current frame registered against keyframes of the already-final
+map from an earlier pass, and fed to the live anchor as a measurement of the chain's
+correction.
+
+Between two lanes a minute apart the GNSS bias changes by a metre and the chain drifts
+(its heading error over a U-turn), so neither can hold two passes over the same seabed
+together to centimetres; a registration between them can, as in real-time sonar SLAM
+(Hurtós et al. 2015, doi:10.1002/rob.21516; Westman & Kaess, "Degeneracy-aware imaging
+sonar SLAM", ICRA 2019). The offline pass does the same in batch (``mapping.loops``,
+``mapping.closures``); live, the earlier pass is final, so a closure says where the
+current frame j must be for the map to agree with itself: the keyframe i's final pose
+composed with the registration, minus the chain at j, a direct measurement of the chain's
+correction (position and heading) for ``mapping.live_anchor``.
+
+Keyframes: one final frame per ``keyframe_spacing_m`` travelled (or ``keyframe_turn_deg``
+turned), its blending-grid image as uint8 with its final pose and the anchor's
+covariance then (its own uncertainty), in a bounded store (the oldest leave first).
+
+Robustness first: seabeds repeat (quadrat rows and farm racks a metre apart, ripples
+0.2-0.45 m), and one false peak a period away would pull a whole lane a period off. So
+
+1. each registration keeps several peaks (``register_far`` hypotheses); each is gated on
+   the anchor's innovation covariance (chi-square), and a registration with two distinct
+   plausible peaks whose likelihoods are close is refused (ambiguous);
+2. a closure between a new pair of passes is applied only once ``confirm`` successive
+   closures of that pair agree within their covariances and the chain's drift between
+   them (Mangelson et al., ICRA 2018, doi:10.1109/ICRA.2018.8460217, pairwise
+   consistency, applied as the closures arrive);
+3. later closures of a confirmed pair are applied one by one, each still gated.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.fmt import FmtRegistrar, PreparedFrame, RelativePose, SonarGrid
+from mapping.frames import SonarMount, compose, relative_pose
+from mapping.live_anchor import LiveAnchor
+from mapping.loops import footprint_overlap
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class LiveClosureParams:
+    enabled: bool = True
+    keyframe_spacing_m: float = 0.5
+    """A final frame becomes a keyframe after this much travel since the last one."""
+    keyframe_turn_deg: float = 10.0
+    """...or this much turn."""
+    memory_mb: float = 64.0
+    """Keyframe images kept (the oldest leave first): 0.1 MB each on a 5 m fan at 2 cm."""
+    min_gap_s: float = 8.0
+    """A keyframe closes the current frame only when it is this much older (nearer in
+    time, the chain itself holds)."""
+    min_overlap: float = 0.3
+    """Smallest share of the lit fan the two frames must see in common."""
+    attempt_every_s: float = 1.0
+    """At most one registration per this many seconds of survey time (each costs a
+    registration on the blending grid, about twice a consecutive one)."""
+    hypotheses: int = 4
+    """Distinct correlation peaks kept per registration."""
+    search_sigma_m: tuple[float, float] = (0.05, 2.0)
+    """Bounds of the prior's translation sigma handed to the registrar (the anchor's
+    predicted sigma between them): it weighs the peaks, the whole surface is searched."""
+    gate_chi2: float = 11.34
+    """Squared Mahalanobis distance of a hypothesis from the anchor's prediction
+    (3 dof, 99 %)."""
+    ambiguity_log_ratio: float = 20.0
+    """Two distinct hypotheses both within the gate whose registrar log-likelihoods are
+    closer than this: the registration is refused."""
+    distinct_m: float = 0.1
+    """Hypotheses imply the same correction when closer than this."""
+    confirm: int = 3
+    """Agreeing closures of a new pair of passes before the first is applied."""
+    consistency_chi2: float = 11.34
+    """Between two closures' measurements (3 dof, 99 %)."""
+    pass_gap_s: float = 8.0
+    """Closures further apart than this in the current frame's time belong to other
+    passes; a confirmed pair lapses after this long without a closure."""
+    max_gate_misses: int = 3
+    """A confirmed pair whose closures miss the gate this many times running lapses."""
+    sigma_floor_m: float = 0.02
+    """Added to the registrar's sigma per axis (the registrar's is a first-order figure
+    that misses view-dependent shading)."""
+    sigma_floor_deg: float = 0.3
+    opposite_look_sigma_m: tuple[float, float] = (0.05, 0.05)
+    """Extra (forward, starboard) sigma of a closure between headings more than 90
+    degrees apart (shading and shadows move with the look direction)."""
+    opposite_yaw_sigma_deg: float = 0.6
+    keyframe_sigma_m: float = 0.012
+    """A keyframe's pose against the drawn map: frames are re-blended only when they
+    moved more than ``StreamingParams.move_threshold_m`` (2 cm), so where the seabed is
+    drawn differs from the final pose by up to that (uniform: 2 cm / sqrt 3)."""
+
+
+@dataclass(slots=True)
+class Keyframe:
+    """A final frame kept for closures: vehicle pose (local metres, grid heading), the
+    anchor's correction (c_e, c_n, h) it was drawn with, and its image (uint8)."""
+
+    index: int
+    time: float
+    pose: Array
+    sonar: Array
+    correction: Array
+    image: npt.NDArray[np.uint8]
+    grid: SonarGrid
+
+
+@dataclass(frozen=True, slots=True)
+class Closure:
+    """One closure's measurement of the anchor's (c_e, c_n, h) for frame j, and the
+    keyframe's own correction (so ``measured - keyframe_correction`` is the chain's drift
+    between the two passes, which the map's own bends leave out)."""
+
+    i: int
+    j: int
+    time_i: float
+    time_j: float
+    relative: RelativePose  # vehicle j in vehicle i
+    measured: Array
+    covariance: Array  # world frame (east, north, heading), with floors
+    keyframe_correction: Array
+    chain_xy: Array
+    d2: float
+
+    @property
+    def drift(self) -> Array:
+        d = self.measured - self.keyframe_correction
+        d[2] = math.remainder(float(d[2]), 2 * math.pi)
+        return d
+
+
+@dataclass
+class _Pair:
+    """A confirmed pair of passes: its last closure and how often it missed the gate."""
+
+    last: Closure
+    misses: int = 0
+
+
+@dataclass
+class ClosureStats:
+    keyframes: int = 0
+    keyframes_evicted: int = 0
+    keyframe_bytes: int = 0
+    attempts: int = 0
+    rejected_gate: int = 0
+    rejected_ambiguous: int = 0
+    pending: int = 0
+    rejected_inconsistent: int = 0
+    confirmed_pairs: int = 0
+    applied: int = 0
+    log: list[dict[str, float | list[float]]] = field(default_factory=list)
+
+
+class KeyframeStore:
+    """Keyframes in a bounded store with a coarse spatial index of their fan centres."""
+
+    def __init__(
+        self, params: LiveClosureParams, lit_m: tuple[float, float], half_fan_rad: float
+    ) -> None:
+        self.params = params
+        self.lit_m = lit_m
+        self.half_fan_rad = half_fan_rad
+        self.cell_m = max(lit_m[1], 1.0)
+        self.frames: dict[int, Keyframe] = {}
+        self._order: deque[int] = deque()
+        self._cells: dict[tuple[int, int], list[int]] = {}
+        self._last: Keyframe | None = None
+        self.bytes = 0
+        self.evicted = 0
+
+    def _cell(self, sonar: Array) -> tuple[int, int]:
+        mid = 0.5 * (self.lit_m[0] + self.lit_m[1])
+        x = float(sonar[0]) + mid * math.sin(float(sonar[2]))
+        y = float(sonar[1]) + mid * math.cos(float(sonar[2]))
+        return math.floor(x / self.cell_m), math.floor(y / self.cell_m)
+
+    def offer(
+        self,
+        index: int,
+        time: float,
+        pose: Array,
+        sonar: Array,
+        correction: Array,
+        image: npt.NDArray[np.float32],
+        grid: SonarGrid,
+    ) -> bool:
+        """Keep a final frame as a keyframe when it is far enough from the last one."""
+        p = self.params
+        last = self._last
+        if last is not None:
+            moved = math.hypot(pose[0] - last.pose[0], pose[1] - last.pose[1])
+            turned = abs(math.remainder(float(pose[2] - last.pose[2]), 2 * math.pi))
+            if moved < p.keyframe_spacing_m and turned < math.radians(p.keyframe_turn_deg):
+                return False
+        stored = np.clip(np.rint(image * np.float32(255.0)), 0, 255).astype(np.uint8)
+        frame = Keyframe(
+            index, time, pose.copy(), sonar.copy(), np.asarray(correction, float), stored, grid
+        )
+        self.frames[index] = frame
+        self._order.append(index)
+        self._cells.setdefault(self._cell(sonar), []).append(index)
+        self._last = frame
+        self.bytes += self.size_of(frame)
+        while self.bytes > p.memory_mb * 2**20 and len(self._order) > 1:
+            self._evict(self._order.popleft())
+        return True
+
+    @staticmethod
+    def size_of(frame: Keyframe) -> int:
+        """Bytes a keyframe holds (its image and its few numbers)."""
+        numbers = frame.pose.nbytes + frame.sonar.nbytes + frame.correction.nbytes
+        return int(frame.image.nbytes + numbers)
+
+    def _evict(self, index: int) -> None:
+        frame = self.frames.pop(index)
+        cell = self._cells.get(self._cell(frame.sonar))
+        if cell is not None:
+            cell.remove(index)
+        self.bytes -= self.size_of(frame)
+        self.evicted += 1
+
+    def best(self, sonar: Array, time: float) -> tuple[Keyframe, float] | None:
+        """The keyframe at least ``min_gap_s`` older whose fan shares the most lit seabed
+        with a fan at ``sonar`` (x, y, yaw), if it shares at least ``min_overlap``."""
+        p = self.params
+        cx, cy = self._cell(sonar)
+        reach = math.ceil(2.0 * self.lit_m[1] / self.cell_m)
+        near = [
+            k
+            for dx in range(-reach, reach + 1)
+            for dy in range(-reach, reach + 1)
+            for k in self._cells.get((cx + dx, cy + dy), ())
+            if self.frames[k].time <= time - p.min_gap_s
+        ]
+        if not near:
+            return None
+        old = np.array([self.frames[k].sonar for k in near])
+        now = np.repeat(np.asarray(sonar, float)[None], len(near), axis=0)
+        share = np.minimum(
+            footprint_overlap(old, now, self.lit_m, self.half_fan_rad),
+            footprint_overlap(now, old, self.lit_m, self.half_fan_rad),
+        )
+        k = int(np.argmax(share))
+        if share[k] < p.min_overlap:
+            return None
+        return self.frames[near[k]], float(share[k])
+
+
+def _world_rotation(heading: float) -> Array:
+    """(forward, starboard, yaw) in the frame of a pose at ``heading`` to (east, north,
+    yaw)."""
+    s, c = math.sin(heading), math.cos(heading)
+    return np.array([[s, c, 0.0], [c, -s, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _wrapped(v: Array) -> Array:
+    out = np.asarray(v, float).copy()
+    out[2] = math.remainder(float(out[2]), 2 * math.pi)
+    return out
+
+
+class LiveClosures:
+    """See the module docstring. ``offer_keyframe`` as frames become final, ``consider``
+    once per accepted frame."""
+
+    def __init__(
+        self,
+        params: LiveClosureParams,
+        mount: SonarMount,
+        lit_m: tuple[float, float],
+        half_fan_rad: float,
+    ) -> None:
+        self.params = params
+        self.mount = mount
+        self.store = KeyframeStore(params, lit_m, half_fan_rad)
+        self.stats = ClosureStats()
+        self.log_attempts = False
+        """Keep every hypothesis and applied closure in ``stats.log`` (diagnostics)."""
+        self._last_attempt = -math.inf
+        self._prepared: dict[int, PreparedFrame] = {}
+        self._pending: list[Closure] = []
+        self._pairs: list[_Pair] = []
+
+    def offer_keyframe(
+        self,
+        index: int,
+        time: float,
+        pose: Array,
+        correction: Array,
+        image: npt.NDArray[np.float32],
+        grid: SonarGrid,
+    ) -> None:
+        """A frame became final at ``pose``, drawn with the anchor's ``correction``."""
+        sonar = self.mount.sonar_pose(pose)
+        if self.store.offer(index, time, pose, sonar, correction, image, grid):
+            self.stats.keyframes += 1
+        self.stats.keyframes_evicted = self.store.evicted
+        self.stats.keyframe_bytes = self.store.bytes
+
+    # -- one frame ------------------------------------------------------------------------
+    def consider(
+        self,
+        index: int,
+        time: float,
+        pose: Array,
+        chain_xy: Array,
+        chain_heading: float,
+        image: npt.NDArray[np.float32],
+        registrar: FmtRegistrar,
+        anchor: LiveAnchor,
+    ) -> bool:
+        """Try a closure for accepted frame ``index`` at its live ``pose`` (the chain at
+        ``chain_xy``, ``chain_heading``, plus the anchor's correction); apply what is
+        confirmed to ``anchor``. True when the anchor was updated."""
+        p = self.params
+        if time - self._last_attempt < p.attempt_every_s:
+            return False
+        sonar = self.mount.sonar_pose(pose)
+        found = self.store.best(sonar, time)
+        if found is None:
+            return False
+        keyframe, _ = found
+        if keyframe.grid != registrar.grid:
+            return False
+        self._last_attempt = time
+        self.stats.attempts += 1
+        self._pairs = [pair for pair in self._pairs if time - pair.last.time_j <= p.pass_gap_s]
+        pair = self._pair_of(keyframe.time, time)
+        if pair is not None:
+            # In a confirmed pair the map's own bend between its last keyframe and this
+            # one is known: the live correction is predicted to follow it.
+            bend = _wrapped(keyframe.correction - pair.last.keyframe_correction)
+            unknown = np.zeros((3, 3))
+        else:
+            # A new pair: the map there was drawn with another correction than the live
+            # one (the anchor moved since, with the GNSS and other closures), and the
+            # chain drifted since; how much of the difference is which is unknown.
+            bend = np.zeros(3)
+            ce, cn = anchor.correction
+            moved = _wrapped(keyframe.correction - np.array([ce, cn, anchor.heading]))
+            path = chain_xy - (keyframe.pose[:2] - keyframe.correction[:2])
+            unknown = np.outer(moved, moved) + anchor.drift_covariance(
+                time - keyframe.time, (float(path[0]), float(path[1]))
+            )
+        closure = self._register(
+            index, time, sonar, chain_xy, chain_heading, image, keyframe, registrar, anchor,
+            bend, unknown,
+        )  # fmt: skip
+        if closure is None:
+            if pair is not None:
+                pair.misses += 1
+                if pair.misses >= p.max_gate_misses:
+                    self._pairs.remove(pair)
+            return False
+        if pair is not None:
+            pair.last, pair.misses = closure, 0
+            anchor.shift(bend)
+            self._apply(closure, anchor)
+            return True
+        return self._confirm(closure, anchor, unknown)
+
+    def _prepare(self, keyframe: Keyframe, registrar: FmtRegistrar) -> PreparedFrame:
+        prepared = self._prepared.get(keyframe.index)
+        if prepared is None:
+            prepared = registrar.prepare(keyframe.image.astype(np.float32) * np.float32(1 / 255))
+            # Successive attempts often use the same keyframe: keep the last two (with
+            # their sector spectra, a few MB each).
+            if len(self._prepared) >= 2:
+                self._prepared.pop(next(iter(self._prepared)))
+            self._prepared[keyframe.index] = prepared
+        return prepared
+
+    def _register(
+        self,
+        index: int,
+        time: float,
+        sonar: Array,
+        chain_xy: Array,
+        chain_heading: float,
+        image: npt.NDArray[np.float32],
+        keyframe: Keyframe,
+        registrar: FmtRegistrar,
+        anchor: LiveAnchor,
+        bend: Array,
+        unknown: Array,
+    ) -> Closure | None:
+        """Register against the keyframe, gate each hypothesis on the anchor's prediction
+        (moved by the map's known ``bend``, widened by what is ``unknown`` between the
+        keyframe and now), refuse ambiguity; the chosen measurement."""
+        p = self.params
+        predicted = anchor.correction_covariance() + unknown
+        sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
+        sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
+        reg = registrar.register_far(
+            self._prepare(keyframe, registrar),
+            image,
+            relative_pose(keyframe.sonar, sonar),
+            prior_sigma_m=sigma,
+            n_hypotheses=p.hypotheses,
+        )
+        rotation = _world_rotation(float(keyframe.pose[2]))
+        turned = abs(math.remainder(float(sonar[2] - keyframe.sonar[2]), 2 * math.pi))
+        floor = np.diag([p.sigma_floor_m**2] * 2 + [math.radians(p.sigma_floor_deg) ** 2])
+        if turned > math.pi / 2:
+            look_f, look_s = p.opposite_look_sigma_m
+            floor += np.diag([look_f**2, look_s**2, math.radians(p.opposite_yaw_sigma_deg) ** 2])
+        keyframe_cov = np.diag([p.keyframe_sigma_m**2] * 2 + [0.0])
+        plausible: list[tuple[float, Closure]] = []  # (log-likelihood, closure)
+        for rank, hyp in enumerate(reg.hypotheses or ()):
+            vehicle = self.mount.vehicle_relative(hyp.relative)
+            raw = self.mount.vehicle_covariance(hyp.covariance)
+            implied = compose(keyframe.pose, vehicle)
+            measured = _wrapped(
+                np.array(
+                    [implied[0] - chain_xy[0], implied[1] - chain_xy[1], implied[2] - chain_heading]
+                )
+            )
+            covariance = rotation @ (raw + floor) @ rotation.T + keyframe_cov
+            nu, s = anchor.closure_innovation(measured - bend, covariance + unknown)
+            d2 = float(nu @ np.linalg.solve(s, nu))
+            closure = Closure(
+                keyframe.index, index, keyframe.time, time, vehicle, measured, covariance,
+                keyframe.correction, np.asarray(chain_xy, float).copy(), d2,
+            )  # fmt: skip
+            if self.log_attempts:
+                self._log(closure, rank, hyp.log_likelihood, hyp.score, raw, nu, s)
+            if d2 < p.gate_chi2:
+                plausible.append((hyp.log_likelihood, closure))
+        if not plausible:
+            self.stats.rejected_gate += 1
+            return None
+        plausible.sort(key=lambda item: -item[0])
+        best_ll, best = plausible[0]
+        for rival_ll, rival in plausible[1:]:
+            apart = float(np.hypot(*(rival.measured[:2] - best.measured[:2])))
+            if apart > p.distinct_m and best_ll - rival_ll < p.ambiguity_log_ratio:
+                self.stats.rejected_ambiguous += 1
+                return None
+        return best
+
+    def _log(
+        self,
+        closure: Closure,
+        rank: int,
+        log_likelihood: float,
+        score: float,
+        raw: Array,
+        nu: Array,
+        s: Array,
+    ) -> None:
+        self.stats.log.append(
+            {
+                "i": float(closure.i),
+                "j": float(closure.j),
+                "rank": float(rank),
+                "forward_m": closure.relative.forward_m,
+                "starboard_m": closure.relative.starboard_m,
+                "yaw_rad": closure.relative.yaw_rad,
+                "d2": closure.d2,
+                "log_likelihood": log_likelihood,
+                "score": score,
+                "raw_cov": [float(v) for v in np.ravel(raw)],
+                "nu": [float(v) for v in nu],
+                "S": [float(v) for v in np.ravel(s)],
+            }
+        )
+
+    # -- which closures reach the anchor --------------------------------------------------
+    def _same_passes(self, time_i: float, time_j: float, other: Closure) -> bool:
+        """Closures of the same pair of passes: near in the current frame's time, and the
+        keyframe moved no more than that (plus a pass gap) along the earlier pass."""
+        gap = self.params.pass_gap_s
+        dt_j = abs(time_j - other.time_j)
+        return dt_j <= gap and abs(time_i - other.time_i) <= dt_j + gap
+
+    def _pair_of(self, time_i: float, time_j: float) -> _Pair | None:
+        for pair in self._pairs:
+            if self._same_passes(time_i, time_j, pair.last):
+                return pair
+        return None
+
+    def _drift_between(self, a: Closure, b: Closure, anchor: LiveAnchor) -> Array:
+        path = b.chain_xy - a.chain_xy
+        return anchor.drift_covariance(abs(b.time_j - a.time_j), (float(path[0]), float(path[1])))
+
+    def _consistent(self, a: Closure, b: Closure, anchor: LiveAnchor) -> bool:
+        """Two closures imply the same drift of the chain against the map, within their
+        covariances and the chain's drift between them."""
+        if not self._same_passes(a.time_i, a.time_j, b):
+            return False
+        diff = _wrapped(b.drift - a.drift)
+        cov = a.covariance + b.covariance + self._drift_between(a, b, anchor)
+        return float(diff @ np.linalg.solve(cov, diff)) < self.params.consistency_chi2
+
+    def _confirm(self, closure: Closure, anchor: LiveAnchor, unknown: Array) -> bool:
+        """A closure of a new pair of passes waits until ``confirm`` of them agree; then
+        the anchor's uncertainty is widened by what was ``unknown`` between the map there
+        and the live chain, and the agreeing ones are applied (each as a measurement of
+        the drift at this closure's keyframe, with the chain's drift since it was taken),
+        then this one."""
+        p = self.params
+        self._pending = [c for c in self._pending if closure.time_j - c.time_j <= p.pass_gap_s]
+        agreeing = [c for c in self._pending if self._consistent(c, closure, anchor)]
+        if len(agreeing) + 1 < p.confirm:
+            self._pending.append(closure)
+            self.stats.pending += 1
+            return False
+        self.stats.confirmed_pairs += 1
+        self.stats.rejected_inconsistent += len(self._pending) - len(agreeing)
+        anchor.inflate(unknown)
+        for earlier in agreeing:
+            measured = _wrapped(earlier.drift + closure.keyframe_correction)
+            covariance = earlier.covariance + self._drift_between(earlier, closure, anchor)
+            self._apply(replace(earlier, measured=measured, covariance=covariance), anchor)
+        self._apply(closure, anchor)
+        self._pending = []
+        self._pairs.append(_Pair(closure))
+        return True
+
+    def _apply(self, closure: Closure, anchor: LiveAnchor) -> None:
+        if self.log_attempts:
+            nu, s = anchor.closure_innovation(closure.measured, closure.covariance)
+            self.stats.log.append(
+                {
+                    "applied": 1.0,
+                    "i": float(closure.i),
+                    "j": float(closure.j),
+                    "forward_m": closure.relative.forward_m,
+                    "starboard_m": closure.relative.starboard_m,
+                    "yaw_rad": closure.relative.yaw_rad,
+                    "d2": float(nu @ np.linalg.solve(s, nu)),
+                }
+            )
+        anchor.update_closure(closure.measured, closure.covariance)
+        self.stats.applied += 1
