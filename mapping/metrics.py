@@ -407,11 +407,14 @@ def displacement_field(
     where both have texture, the shift phase correlation finds between them.
 
     ``offset_px``: length of the mean shift (the georeferencing error, GPS-limited);
-    ``distortion_rms_px``: RMS of the shifts about their mean (the mosaic's internal
-    geometry: lanes that disagree, drift, warping); ``rms_px``/``max_px`` of the raw
+    ``rotation_deg``: the turn of the best rigid fit of the shifts, clockwise (the map's
+    heading error as a whole, compass-limited); ``distortion_rms_px``: RMS of the shifts about
+    that rigid fit (the mosaic's internal geometry: lanes that disagree, drift, warping;
+    neither where the map sits nor how it is turned); ``rms_px``/``max_px`` of the raw
     shifts; ``patches`` measured.
     """
     shifts = []
+    centres = []
     window = cv2.createHanningWindow((patch_px, patch_px), cv2.CV_32F)
     rows, cols = mosaic.shape
     for y in range(0, rows - patch_px + 1, patch_px // 2):
@@ -425,10 +428,12 @@ def displacement_field(
             (dx, dy), peak = cv2.phaseCorrelate(b - b.mean(), a - a.mean(), window)
             if peak >= min_peak:
                 shifts.append((dx, dy))
+                centres.append((x + patch_px / 2, y + patch_px / 2))
     if not shifts:
         nan = math.nan
         return {
             "offset_px": nan,
+            "rotation_deg": nan,
             "distortion_rms_px": nan,
             "rms_px": nan,
             "max_px": nan,
@@ -437,9 +442,19 @@ def displacement_field(
     v = np.array(shifts)
     mean = v.mean(axis=0)
     length = np.linalg.norm(v, axis=1)
+    # Rigid fit: where each patch centre went, a turn about the centroid plus a shift.
+    p = np.array(centres)
+    a = p - p.mean(axis=0)
+    b = a + (v - mean)
+    angle = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
+    c, s = math.cos(angle), math.sin(angle)
+    residual = b - a @ np.array([[c, s], [-s, c]])
     return {
         "offset_px": float(np.linalg.norm(mean)),
-        "distortion_rms_px": float(math.sqrt(float(np.mean(np.sum((v - mean) ** 2, axis=1))))),
+        # Image rows grow southwards, so a positive angle here turns x (east) towards
+        # south: clockwise, as headings turn.
+        "rotation_deg": math.degrees(angle),
+        "distortion_rms_px": float(math.sqrt(float(np.mean(np.sum(residual**2, axis=1))))),
         "rms_px": float(math.sqrt(float(np.mean(length**2)))),
         "max_px": float(length.max()),
         "patches": float(len(shifts)),

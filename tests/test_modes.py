@@ -47,10 +47,6 @@ def test_single_stage_keeps_the_quadrat_spacing(accuracy: dict[str, Any]) -> Non
     assert spacing["single-stage"] < 0.05
 
 
-@pytest.mark.xfail(
-    reason="issue 11 open: single-stage mosaic distortion 0.41 m, not below gps-only 0.36",
-    strict=False,
-)
 def test_single_stage_beats_both_baselines_on_mosaic_geometry(accuracy: dict[str, Any]) -> None:
     distortion = {mode: a["mosaic_vs_seabed"]["distortion_rms_m"] for mode, a in accuracy.items()}
     assert distortion["single-stage"] < distortion["fmt-only"]

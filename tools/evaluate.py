@@ -276,6 +276,7 @@ def evaluate(
         field = displacement_field(image, covered, seabed)
         report["mosaic_vs_seabed"] = {
             "offset_m": field["offset_px"] * res_m,
+            "rotation_deg": field["rotation_deg"],
             "distortion_rms_m": field["distortion_rms_px"] * res_m,
             "rms_m": field["rms_px"] * res_m,
             "max_m": field["max_px"] * res_m,

@@ -9,7 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from mapping.metrics import Quadrat, array_offsets, locate_quadrats, quadrat_spacing_error
+from mapping.metrics import (
+    Quadrat,
+    array_offsets,
+    displacement_field,
+    locate_quadrats,
+    quadrat_spacing_error,
+)
 
 RES = 0.02
 
@@ -177,3 +183,33 @@ def test_a_half_covered_array_is_not_placed_a_frame_off() -> None:
     for q, f in located:
         assert f[0] - q.east == pytest.approx(2.6, abs=0.03)
         assert f[1] - q.north == pytest.approx(-0.8, abs=0.03)
+
+
+def _texture(size: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), 2.0)
+
+
+def test_a_turned_map_shows_its_turn_not_a_distortion() -> None:
+    seabed = _texture(1024, 4)
+    # The whole mosaic turned by 2 degrees about its centre and shifted: no internal error.
+    turn = cv2.getRotationMatrix2D((512.0, 512.0), 2.0, 1.0)
+    turn[:, 2] += (6.0, -4.0)
+    mosaic = cv2.warpAffine(seabed, turn, (1024, 1024), flags=cv2.INTER_LINEAR)
+    covered = np.zeros((1024, 1024), bool)
+    covered[64:-64, 64:-64] = True
+    field = displacement_field(mosaic, covered, seabed)
+    assert field["patches"] >= 20
+    # cv2 turns counter-clockwise on the image, rows downward: clockwise on the map.
+    assert field["rotation_deg"] == pytest.approx(-2.0, abs=0.1)
+    assert field["distortion_rms_px"] < 0.5
+    # The raw shifts spread by the turn: what the old mean-only measure called distortion.
+    assert field["rms_px"] > 5.0
+
+
+def test_a_lane_drawn_twice_is_a_distortion() -> None:
+    seabed = _texture(1024, 5)
+    mosaic = seabed.copy()
+    mosaic[:512] = np.roll(seabed[:512], 10, axis=1)  # the northern half 10 px east
+    field = displacement_field(mosaic, np.ones_like(mosaic, bool), seabed)
+    assert field["distortion_rms_px"] > 3.0
