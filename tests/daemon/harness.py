@@ -34,11 +34,13 @@ def write_config(
     sonar_port: int,
     mavlink_url: str,
     zenoh_port: int | None = None,
+    mapping: dict[str, Any] | None = None,
     **daemon: Any,
 ) -> Path:
     """The simulated survey's site config pointed at the emulators and ``state_dir``, its
-    zenoh endpoint on 127.0.0.1."""
+    zenoh endpoint on 127.0.0.1; ``mapping`` and ``daemon`` override keys of those tables."""
     data = tomllib.loads((sim_dir / "site.toml").read_text())
+    data.setdefault("mapping", {}).update(mapping or {})
     data.setdefault("daemon", {}).update(
         state_dir=str(state_dir), survey_autostart=True, health_interval_s=2.0, **daemon
     )
