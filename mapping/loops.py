@@ -36,8 +36,10 @@ class LoopParams:
     """Frames closer in time are left to the consecutive chain."""
     min_overlap: float = 0.3
     """Smallest share of the lit fan two frames must have in common."""
-    stride: int = 4
-    """At most one closure per this many frames of each pass over a place."""
+    stride_s: float = 0.8
+    """At most one closure per this much survey time of each pass over a place (in
+    frames: this times the ping rate, at least one), so a survey pinged at 2 or at 10 Hz
+    gets as many closures a minute."""
     search_m: float = 1.0
     """Sigma of the prior's translation (the GNSS's relative error between lanes): it
     weighs the correlation peaks, the whole surface is searched."""
@@ -108,7 +110,7 @@ def find_candidates(
 ) -> list[tuple[int, int]]:
     """Pairs (i, j), i < j, of mapped frames at least ``min_gap_s`` apart whose fans share
     at least ``min_overlap`` of their lit seabed; one pair, the best, per block of
-    ``stride`` frames on each side."""
+    ``stride_s`` of survey time on each side."""
     index = np.flatnonzero(mapped & np.all(np.isfinite(poses), axis=1))
     if index.size < 2:
         return []
@@ -129,10 +131,12 @@ def find_candidates(
         footprint_overlap(sonar[b], sonar[a], lit_m, half_fan_rad),
     )
     good = overlap >= params.min_overlap
+    interval = float(np.median(np.diff(times[index]))) if index.size > 1 else 1.0
+    stride = max(1, round(params.stride_s / max(interval, 1e-3)))
     best: dict[tuple[int, int], tuple[float, int, int]] = {}
     for ia, ib, share in zip(a[good], b[good], overlap[good], strict=True):
         i, j = int(index[ia]), int(index[ib])
-        key = (i // params.stride, j // params.stride)
+        key = (i // stride, j // stride)
         if key not in best or share > best[key][0]:
             best[key] = (float(share), i, j)
     chosen = sorted((i, j) for _, i, j in best.values())
@@ -140,7 +144,7 @@ def find_candidates(
     # pass (a pass being a run of j's without a gap of min_gap_s).
     thinned: list[tuple[int, int]] = []
     for i, j in chosen:
-        same_block = thinned and thinned[-1][0] // params.stride == i // params.stride
+        same_block = thinned and thinned[-1][0] // stride == i // stride
         if same_block and abs(times[j] - times[thinned[-1][1]]) < params.min_gap_s:
             continue
         thinned.append((i, j))
