@@ -35,11 +35,21 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from seamap.bench import format_table, run_bench
-
     if args.pings is not None and args.pings < 1:
         raise SeamapError(f"--pings must be at least 1, got {args.pings}")
+    # OpenCV's thread count is process-wide and changes the last bits of its sums: put it
+    # back afterwards, so a bench run inside another program leaves its results alone.
+    threads = cv2.getNumThreads()
     cv2.setNumThreads(args.threads)
+    try:
+        return _bench(args)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from seamap.bench import format_table, run_bench
+
     overrides: dict[str, Any] = {}
     if args.beams is not None:
         overrides["n_beams"] = args.beams
