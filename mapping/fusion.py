@@ -409,11 +409,17 @@ class Fusion:
         # GNSS fixes.
         d = self.data
         if d.gnss_times.size and n >= 2:
-            query = d.gnss_times - offset
+            # The frames bracketing each fix are chosen at the prior time offset, once: the
+            # estimated offset moves the fix along that bracket (linearly, beyond it if it
+            # must). Re-bracketing at each iteration made the problem jump between frame
+            # intervals and Gauss-Newton wander by millimetres without converging.
+            reference = p.gnss.time_offset_s
+            query = d.gnss_times - reference
             k, w, usable = _bracket(self.times, query, p.gnss.max_bracket_s)
             k, w, z, tq = k[usable], w[usable], d.gnss_xy[usable], d.gnss_times[usable]
             if k.size:
                 k1 = k + 1
+                w = w - (offset - reference) / np.maximum(self.times[k1] - self.times[k], 1e-6)
                 pos = (1 - w)[:, None] * poses[k, :2] + w[:, None] * poses[k1, :2]
                 kb = np.clip(
                     np.floor((tq - self.knot_times[0]) / p.gnss.knot_spacing_s), 0, lay.n_knots - 2
