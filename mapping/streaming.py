@@ -477,6 +477,7 @@ class StreamingEngine:
             reckoned = self._dead_reckoned(last, odometry)
             span = time - self.times[last]
             bridge_sigma = 0.0
+            scaled = True
             if edge is not None and edge.i == last:
                 forward, starboard, dyaw = edge.forward_m, edge.starboard_m, edge.yaw_rad
                 if span > 0:
@@ -484,6 +485,7 @@ class StreamingEngine:
             else:
                 forward, starboard, dyaw = reckoned or (0.0, 0.0, 0.0)
                 bridge_sigma = self.params.bridge_filter_sigma_mps * span
+                scaled = False
             if reckoned is not None:
                 # The heading follows the gyro (through the filter): over a ping it is good
                 # to a hundredth of a degree, where a registration's yaw is good to a few
@@ -505,11 +507,15 @@ class StreamingEngine:
                 forward = forward_v * turn_c - starboard_v * turn_s
                 starboard = forward_v * turn_s + starboard_v * turn_c
                 bridge_sigma = self.params.bridge_velocity_sigma_mps * span
+                scaled = True
+            if scaled:
+                forward *= 1.0 + self.anchor.scale
+                starboard *= 1.0 + self.anchor.scale
             s, c = math.sin(heading), math.cos(heading)
             step = np.array([forward * s + starboard * c, forward * c - starboard * s])
             self._chain[index] = self._chain[last] + step
             self._chain_heading[index] = self._chain_heading[last] + dyaw
-            self.anchor.chain_step((float(step[0]), float(step[1])), bridge_sigma)
+            self.anchor.chain_step((float(step[0]), float(step[1])), bridge_sigma, scaled)
             # Fixes whose (lagged) time lies up to this frame: residual against the chain.
             t0 = self.times[last]
             while self._pending_fixes and self._pending_fixes[0][0] <= time:
@@ -604,12 +610,21 @@ class StreamingEngine:
             if live is not None:
                 self.tiles.settle(k, live.tiles)
                 if self.closures is not None:
-                    ce, cn = self.anchor.correction
+                    # The correction it is drawn with: its pose less its chained one.
+                    pose = self.poses[k]
+                    drawn_with = np.array(
+                        [
+                            pose[0] - self._chain[k][0],
+                            pose[1] - self._chain[k][1],
+                            math.remainder(float(pose[2]) - self._chain_heading[k], 2 * math.pi),
+                        ]
+                    )
                     self.closures.offer_keyframe(
                         k,
                         live.time,
-                        self.poses[k],
-                        np.array([ce, cn, self.anchor.heading]),
+                        pose,
+                        drawn_with,
+                        float(self.anchor.correction_covariance()[2, 2]),
                         live.image,
                         live.grid,
                     )
