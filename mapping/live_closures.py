@@ -304,6 +304,7 @@ class LiveClosures:
         self._last_attempt = -math.inf
         self._prepared: dict[int, PreparedFrame] = {}
         self._pending: list[Closure] = []
+        self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
         self._pairs: list[_Pair] = []
 
     def offer_keyframe(
@@ -340,7 +341,7 @@ class LiveClosures:
         ``chain_xy``, ``chain_heading``, plus the anchor's correction); apply what is
         confirmed to ``anchor``. True when the anchor was updated."""
         p = self.params
-        if time - self._last_attempt < p.attempt_every_s:
+        if not p.enabled or time - self._last_attempt < p.attempt_every_s:
             return False
         sonar = self.mount.sonar_pose(pose)
         found = self.store.best(sonar, time)
@@ -472,6 +473,7 @@ class LiveClosures:
             apart = float(np.hypot(*(rival.measured[:2] - best.measured[:2])))
             if apart > p.distinct_m and best_ll - rival_ll < p.ambiguity_log_ratio:
                 self.stats.rejected_ambiguous += 1
+                self._doubts.append((keyframe.time, time))
                 return None
         return best
 
@@ -530,15 +532,25 @@ class LiveClosures:
         return float(diff @ np.linalg.solve(cov, diff)) < self.params.consistency_chi2
 
     def _confirm(self, closure: Closure, anchor: LiveAnchor, unknown: Array) -> bool:
-        """A closure of a new pair of passes waits until ``confirm`` of them agree; then
-        the anchor's uncertainty is widened by what was ``unknown`` between the map there
-        and the live chain, and the agreeing ones are applied (each as a measurement of
-        the drift at this closure's keyframe, with the chain's drift since it was taken),
-        then this one."""
+        """A closure of a new pair of passes waits until ``confirm`` of them agree, and
+        one more for each that disagrees and each registration of the pair refused as
+        ambiguous (a seabed that repeats: the strongest peak moves from one period to
+        the next between registrations, and three of one period in a row prove
+        nothing); then the anchor's uncertainty is widened by what was ``unknown``
+        between the map there and the live chain, and the agreeing ones are applied
+        (each as a measurement of the drift at this closure's keyframe, with the
+        chain's drift since it was taken), then this one."""
         p = self.params
         self._pending = [c for c in self._pending if closure.time_j - c.time_j <= p.pass_gap_s]
+        self._doubts = [d for d in self._doubts if closure.time_j - d[1] <= p.pass_gap_s]
         agreeing = [c for c in self._pending if self._consistent(c, closure, anchor)]
-        if len(agreeing) + 1 < p.confirm:
+        rivals = sum(
+            1
+            for c in self._pending
+            if c not in agreeing and self._same_passes(c.time_i, c.time_j, closure)
+        )
+        doubts = sum(1 for ti, tj in self._doubts if self._same_passes(ti, tj, closure))
+        if len(agreeing) + 1 < p.confirm + rivals + doubts:
             self._pending.append(closure)
             self.stats.pending += 1
             return False
