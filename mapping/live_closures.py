@@ -89,6 +89,9 @@ class LiveClosureParams:
     pass_gap_s: float = 8.0
     """Closures further apart than this in the current frame's time belong to other
     passes; a confirmed pair lapses after this long without a closure."""
+    hold_before_s: float = 3.0
+    """Frames this long before a pending closure are held live with it (the pass was
+    over the old one, seen from farther, before the best overlap came)."""
     max_gate_misses: int = 3
     """A confirmed pair whose closures miss the gate this many times running lapses."""
     sigma_floor_m: float = 0.02
@@ -324,6 +327,16 @@ class LiveClosures:
             self.stats.keyframes += 1
         self.stats.keyframes_evicted = self.store.evicted
         self.stats.keyframe_bytes = self.store.bytes
+
+    def holding(self, now: float) -> float | None:
+        """While closures of a new pair of passes wait for agreement (at survey time
+        ``now``): the time from which the live frames should stay movable
+        (``hold_before_s`` before the first of them, when the pass was already over the
+        old one), else None."""
+        self._pending = [c for c in self._pending if now - c.time_j <= self.params.pass_gap_s]
+        if not self._pending:
+            return None
+        return min(c.time_j for c in self._pending) - self.params.hold_before_s
 
     # -- one frame ------------------------------------------------------------------------
     def consider(

@@ -81,6 +81,9 @@ class StreamingParams:
     work; the survey-end pass registers again at the pipeline's full resolution."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
+    closure_hold_frames: int = 150
+    """While a pair of passes waits for agreeing closures, frames since a little before
+    its first one stay in the window, up to this many (15 s at 10 Hz, 200 kB each)."""
     anchor: AnchorParams = field(default_factory=AnchorParams)
     """How the live chain is tied to the GNSS and the heading filter."""
     closures: LiveClosureParams = field(default_factory=LiveClosureParams)
@@ -599,6 +602,18 @@ class StreamingEngine:
         # Frames leaving the window become final.
         keep = 0 if final else self.params.window_frames
         upto = max(len(accepted) - keep, self._final_upto)
+        held = (
+            self.closures.holding(self.times[accepted[-1]])
+            if self.closures is not None and accepted and not final
+            else None
+        )
+        if held is not None:
+            # A pair of passes waits for its closures to agree: the frames drawn since
+            # just before its first one stay live, so that they move with it when it is
+            # applied instead of staying where the GNSS put them (bounded).
+            oldest = max(len(accepted) - self.params.closure_hold_frames, self._final_upto)
+            while upto > oldest and self.times[accepted[upto - 1]] >= held:
+                upto -= 1
         leaving = set(accepted[self._final_upto : upto])
         for k in list(self._live):
             threshold = (
