@@ -107,8 +107,7 @@ def _rss_mb() -> float:
 
 @pytest.fixture(scope="module")
 def hectare() -> tuple[SimStream, float]:
-    # CPU time, not wall time: what the stream costs, whatever else the machine runs.
-    started = time.process_time()
+    started = time.perf_counter()
     return survey_events("hectare", 3, n_beams=128), started
 
 
@@ -124,7 +123,9 @@ def test_hectare_is_a_two_hour_hectare(hectare: tuple[SimStream, float]):
 
 
 def test_hectare_streams_at_once_in_bounded_memory(hectare: tuple[SimStream, float]):
-    stream, started = hectare
+    stream, _ = hectare
+    # CPU time of this test, not wall time: what the stream costs, whatever else runs.
+    started = time.process_time()
     rss: dict[int, float] = {}
     pings = nav = 0
     last = -math.inf
@@ -136,7 +137,7 @@ def test_hectare_streams_at_once_in_bounded_memory(hectare: tuple[SimStream, flo
             continue
         pings += 1
         if pings == 50:
-            # Not the whole two hours first: setup ~3 s of CPU, then ~400 pings/s.
+            # Not the whole two hours first: ~400 pings/s once it streams.
             assert time.process_time() - started < 15.0
         if pings in (300, 1000):
             rss[pings] = _rss_mb() if Path("/proc/self/statm").exists() else math.nan
