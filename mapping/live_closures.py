@@ -90,8 +90,9 @@ class LiveClosureParams:
     """Closures further apart than this in the current frame's time belong to other
     passes; a confirmed pair lapses after this long without a closure."""
     hold_before_s: float = 3.0
-    """Frames this long before a pending closure are held live with it (the pass was
-    over the old one, seen from farther, before the best overlap came)."""
+    """Frames since the last closure applied, and at least this long before a pending
+    closure, are held live with it (the pass was over the old one, seen from farther,
+    before the best overlap came)."""
     max_gate_misses: int = 3
     """A confirmed pair whose closures miss the gate this many times running lapses."""
     sigma_floor_m: float = 0.02
@@ -305,6 +306,7 @@ class LiveClosures:
         self.log_attempts = False
         """Keep every hypothesis and applied closure in ``stats.log`` (diagnostics)."""
         self._last_attempt = -math.inf
+        self._last_applied = -math.inf  # time_j of the last closure applied
         self._prepared: dict[int, PreparedFrame] = {}
         self._pending: list[Closure] = []
         self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
@@ -336,7 +338,10 @@ class LiveClosures:
         self._pending = [c for c in self._pending if now - c.time_j <= self.params.pass_gap_s]
         if not self._pending:
             return None
-        return min(c.time_j for c in self._pending) - self.params.hold_before_s
+        # Everything drawn since the last closure was applied was drawn with the
+        # correction the new pair is about to correct.
+        first = min(c.time_j for c in self._pending)
+        return min(first - self.params.hold_before_s, self._last_applied)
 
     # -- one frame ------------------------------------------------------------------------
     def consider(
@@ -595,3 +600,4 @@ class LiveClosures:
             )
         anchor.update_closure(closure.measured, closure.covariance)
         self.stats.applied += 1
+        self._last_applied = max(self._last_applied, closure.time_j)

@@ -81,9 +81,10 @@ class StreamingParams:
     work; the survey-end pass registers again at the pipeline's full resolution."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
-    closure_hold_frames: int = 150
-    """While a pair of passes waits for agreeing closures, frames since a little before
-    its first one stay in the window, up to this many (15 s at 10 Hz, 200 kB each)."""
+    closure_hold_frames: int = 100
+    """While a pair of passes waits for agreeing closures, frames drawn since the last
+    closure stay in the window, up to this many (10 s at 10 Hz; a live frame holds its
+    image, score and mask, about 1 MB on a 5 m fan at 2 cm)."""
     anchor: AnchorParams = field(default_factory=AnchorParams)
     """How the live chain is tied to the GNSS and the heading filter."""
     closures: LiveClosureParams = field(default_factory=LiveClosureParams)
