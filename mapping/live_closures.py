@@ -86,6 +86,11 @@ class LiveClosureParams:
     """Agreeing closures of a new pair of passes before the first is applied."""
     consistency_chi2: float = 11.34
     """Between two closures' measurements (3 dof, 99 %)."""
+    new_pair_sigma_m: float = 0.5
+    """Added (per axis) to the prediction of a closure of a new pair of passes: the
+    right closures of new pairs were found up to 0.8 m from the anchor's prediction
+    (along the lanes after a U-turn, 3-6 sigma of the modelled drift), and the pair is
+    confirmed by agreement, not by the gate."""
     pass_gap_s: float = 8.0
     """Closures further apart than this in the current frame's time belong to other
     passes; a confirmed pair lapses after this long without a closure."""
@@ -388,6 +393,7 @@ class LiveClosures:
             unknown = np.outer(moved, moved) + anchor.drift_covariance(
                 time - keyframe.time, (float(path[0]), float(path[1]))
             )
+            unknown[:2, :2] += p.new_pair_sigma_m**2 * np.eye(2)
         closure = self._register(
             index, time, sonar, chain_xy, chain_heading, image, keyframe, registrar, anchor,
             bend, unknown,
