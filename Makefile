@@ -6,6 +6,9 @@ STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 ACCURACY_OUT ?= accuracy-out
 JOBS ?= 2
+# Test files run on this many processes (a file's tests stay together: module fixtures
+# are built once); most of the suite's wall time is real-time daemon runs that wait.
+TEST_JOBS ?= 2
 
 .PHONY: demo test lint typecheck pytest accuracy clean
 
@@ -31,7 +34,7 @@ typecheck: $(STAMP)
 	$(BIN)/mypy
 
 pytest: $(STAMP)
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n $(TEST_JOBS) --dist loadfile
 
 # The accuracy matrix: simulated surveys replayed in every mode (hours; not in `make test`).
 accuracy: $(STAMP)
