@@ -136,12 +136,16 @@ def _correction(poses: Array, c: ClosureCandidate, h: ClosureHypothesis) -> Arra
     return d
 
 
+def world_rotation(heading: float) -> Array:
+    """(forward, starboard, yaw) in the frame of a pose at ``heading`` to (east, north,
+    yaw): east = f sin + st cos, north = f cos - st sin."""
+    s, c = math.sin(heading), math.cos(heading)
+    return np.array([[s, c, 0.0], [c, -s, 0.0], [0.0, 0.0, 1.0]])
+
+
 def _world_cov(poses: Array, i: int, cov: Array) -> Array:
     """A covariance in the frame of pose i turned into world east/north (2 x 2)."""
-    psi = poses[i, 2]
-    s, c = math.sin(psi), math.cos(psi)
-    # (forward, starboard) -> (east, north): east = f s + st c, north = f c - st s.
-    rot = np.array([[s, c], [c, -s]])
+    rot = world_rotation(float(poses[i, 2]))[:2, :2]
     return np.asarray(rot @ cov[:2, :2] @ rot.T, float)
 
 

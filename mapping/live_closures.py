@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from mapping.closures import world_rotation
 from mapping.fmt import FmtRegistrar, PreparedFrame, RelativePose, SonarGrid
 from mapping.frames import SonarMount, compose, relative_pose
 from mapping.live_anchor import LiveAnchor
@@ -87,10 +88,11 @@ class LiveClosureParams:
     consistency_chi2: float = 11.34
     """Between two closures' measurements (3 dof, 99 %)."""
     new_pair_sigma_m: float = 0.5
-    """Added (per axis) to the prediction of a closure of a new pair of passes: the
-    right closures of new pairs were found up to 0.8 m from the anchor's prediction
-    (along the lanes after a U-turn, 3-6 sigma of the modelled drift), and the pair is
-    confirmed by agreement, not by the gate."""
+    """Added (per axis) to what is unknown between the map and the live chain at a new
+    pair of passes (the gate's prediction, and the anchor's widening when the pair is
+    confirmed): the right closures of new pairs were found up to 0.8 m from the anchor's
+    prediction (along the lanes after a U-turn, 3-6 sigma of the modelled drift), and the
+    pair is confirmed by agreement, not by the gate."""
     pass_gap_s: float = 8.0
     """Closures further apart than this in the current frame's time belong to other
     passes; a confirmed pair lapses after this long without a closure."""
@@ -280,13 +282,6 @@ class KeyframeStore:
         return self.frames[near[k]], float(share[k])
 
 
-def _world_rotation(heading: float) -> Array:
-    """(forward, starboard, yaw) in the frame of a pose at ``heading`` to (east, north,
-    yaw)."""
-    s, c = math.sin(heading), math.cos(heading)
-    return np.array([[s, c, 0.0], [c, -s, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _wrapped(v: Array) -> Array:
     out = np.asarray(v, float).copy()
     out[2] = math.remainder(float(out[2]), 2 * math.pi)
@@ -450,7 +445,7 @@ class LiveClosures:
             prior_sigma_m=sigma,
             n_hypotheses=p.hypotheses,
         )
-        rotation = _world_rotation(float(keyframe.pose[2]))
+        rotation = world_rotation(float(keyframe.pose[2]))
         turned = abs(math.remainder(float(sonar[2] - keyframe.sonar[2]), 2 * math.pi))
         floor = np.diag([p.sigma_floor_m**2] * 2 + [math.radians(p.sigma_floor_deg) ** 2])
         if turned > math.pi / 2:

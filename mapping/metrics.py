@@ -83,6 +83,18 @@ def relative_pose_consistency(a: Array, b: Array) -> tuple[float, float]:
     return float(err.mean()), float(math.sqrt(float(np.mean(err**2))))
 
 
+def _best_turn(a: Array, b: Array) -> float:
+    """The angle (radians, x towards y) of the rotation that best maps the centred points
+    ``a`` (n, 2) onto the centred points ``b`` in the least-squares sense."""
+    return math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
+
+
+def _turn_matrix(angle: float) -> Array:
+    """Right-multiplying (n, 2) row vectors by this turns them by ``angle``."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, s], [-s, c]])
+
+
 def absolute_trajectory_error(estimate: Array, truth: Array) -> dict[str, float]:
     """Position error (metres) of georeferenced poses against the truth, as they are
     (``rmse``) and after the best rigid 2-D alignment (``aligned_rmse``: shape only)."""
@@ -93,9 +105,7 @@ def absolute_trajectory_error(estimate: Array, truth: Array) -> dict[str, float]
     err = np.linalg.norm(e - t, axis=1)
     ec, tc = e.mean(axis=0), t.mean(axis=0)
     a, b = e - ec, t - tc
-    theta = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
-    c, s = math.cos(theta), math.sin(theta)
-    aligned = a @ np.array([[c, s], [-s, c]]) + tc
+    aligned = a @ _turn_matrix(_best_turn(a, b)) + tc
     aligned_err = np.linalg.norm(aligned - t, axis=1)
     return {
         "rmse": float(math.sqrt(float(np.mean(err**2)))),
@@ -446,9 +456,8 @@ def displacement_field(
     p = np.array(centres)
     a = p - p.mean(axis=0)
     b = a + (v - mean)
-    angle = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
-    c, s = math.cos(angle), math.sin(angle)
-    residual = b - a @ np.array([[c, s], [-s, c]])
+    angle = _best_turn(a, b)
+    residual = b - a @ _turn_matrix(angle)
     return {
         "offset_px": float(np.linalg.norm(mean)),
         # Image rows grow southwards, so a positive angle here turns x (east) towards
