@@ -43,6 +43,7 @@ from mapping.fmt import FmtRegistrar, PreparedFrame, RelativePose, SonarGrid
 from mapping.frames import SonarMount, compose, relative_pose
 from mapping.live_anchor import LiveAnchor
 from mapping.loops import footprint_overlap
+from mapping.overlap import OverlapRefiner
 
 Array = npt.NDArray[np.float64]
 
@@ -110,6 +111,9 @@ class LiveClosureParams:
     """Extra (forward, starboard) sigma of a closure between headings more than 90
     degrees apart (shading and shadows move with the look direction)."""
     opposite_yaw_sigma_deg: float = 0.6
+    refine: bool = True
+    """Each hypothesis is registered again on the seabed both frames share
+    (``mapping.overlap``), as the survey-end pass's closures are."""
     keyframe_sigma_m: float = 0.012
     """A keyframe's pose against the drawn map: frames are re-blended only when they
     moved more than ``StreamingParams.move_threshold_m`` (2 cm), so where the seabed is
@@ -308,6 +312,7 @@ class LiveClosures:
         self._last_attempt = -math.inf
         self._last_applied = -math.inf  # time_j of the last closure applied
         self._prepared: dict[int, PreparedFrame] = {}
+        self._refiner: OverlapRefiner | None = None
         self._pending: list[Closure] = []
         self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
         self._pairs: list[_Pair] = []
@@ -438,8 +443,9 @@ class LiveClosures:
         predicted = anchor.correction_covariance() + unknown
         sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
         sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
+        prepared = self._prepare(keyframe, registrar)
         reg = registrar.register_far(
-            self._prepare(keyframe, registrar),
+            prepared,
             image,
             relative_pose(keyframe.sonar, sonar),
             prior_sigma_m=sigma,
@@ -458,7 +464,12 @@ class LiveClosures:
             self.stats.rejected_weak += 1
             return None
         for rank, hyp in enumerate(reg.hypotheses or ()):
-            vehicle = self.mount.vehicle_relative(hyp.relative)
+            relative = hyp.relative
+            if p.refine:
+                if self._refiner is None or self._refiner.grid != registrar.grid:
+                    self._refiner = OverlapRefiner(registrar.grid, registrar.mask)
+                relative = self._refiner.refine(prepared.image, image, relative) or relative
+            vehicle = self.mount.vehicle_relative(relative)
             raw = self.mount.vehicle_covariance(hyp.covariance)
             implied = compose(keyframe.pose, vehicle)
             measured = _wrapped(

@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
 from mapping.frames import LocalRegistration, SonarMount, relative_pose
+from mapping.overlap import OverlapRefiner
 from mapping.samples import Ping
 
 Array = npt.NDArray[np.float64]
@@ -53,6 +54,10 @@ class LoopParams:
     sigma_floor_m: float = 0.01
     """Added to the registrar's own covariance (view-dependent shading)."""
     sigma_floor_deg: float = 0.1
+    refine: bool = True
+    """Each hypothesis is registered again on the seabed both frames share
+    (``mapping.overlap``): the unshared parts of two rippled fans pull the peak by
+    centimetres."""
 
 
 @dataclass
@@ -60,6 +65,8 @@ class LoopReport:
     candidates: int = 0
     registered: int = 0
     rejected_score: int = 0
+    refined: int = 0
+    """Hypotheses registered again on the shared seabed (``LoopParams.refine``)."""
     kept: int = 0
 
 
@@ -173,6 +180,7 @@ def register_hypotheses(
     for i, j in pairs:
         last_use[i] = max(last_use.get(i, -1), j)
     held: dict[int, npt.NDArray[np.float32]] = {}
+    refiner: OverlapRefiner | None = None
     sonar = mount.sonar_pose(poses)
     out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for index, ping in enumerate(pings):
@@ -200,7 +208,15 @@ def register_hypotheses(
             for hyp in reg.hypotheses or (reg,):
                 if hyp.score < params.min_score:
                     continue
-                vehicle = mount.vehicle_relative(hyp.relative)
+                relative = hyp.relative
+                if params.refine:
+                    if refiner is None or refiner.grid != registrar.grid:
+                        refiner = OverlapRefiner(registrar.grid, registrar.mask)
+                    refined = refiner.refine(earlier, image, relative)
+                    if refined is not None:
+                        relative = refined
+                        report.refined += 1
+                vehicle = mount.vehicle_relative(relative)
                 cov = _closure_cov(hyp.covariance, mount, params)
                 found.append(ClosureHypothesis(vehicle, cov, float(hyp.score)))
             if not found:
