@@ -86,13 +86,13 @@ def single_stage(
     ]
     | None,
     loop_report: LoopReport,
-    rigid_frames: int | None = None,
+    rigid_s: float | None = None,
 ) -> SingleStageResult:
     """Place the accepted frames. ``closure_source(poses)`` gives what loop closures need
     (a fresh pass over the pings, a registration set-up, the lit range band and half the
     fan) or is None when closures are off.
 
-    rigid_frames: two-stage (the paper's baseline): runs of this many frames are first
+    rigid_s: two-stage (the paper's baseline): runs of this many seconds of frames are first
     chained into rigid submaps (stage 1, as fmt-only does), and only the submaps' poses
     are solved (stage 2), against the same measurements. Consecutive submaps are tied by
     the registration between their end frames, which is what the paper's half-overlapping
@@ -105,7 +105,7 @@ def single_stage(
         return SingleStageResult(out, [], None, report, {})
     node_times = times[nodes]
     data = fusion_data(inputs, node_times, params.graph.sonar_latency_s)
-    rigid = _rigid_groups(chain, nodes.size, rigid_frames) if rigid_frames else None
+    rigid = _rigid_groups(chain, times[nodes], rigid_s) if rigid_s else None
     if rigid is not None:
         chain = _loosen_links(chain, rigid, _internal_drift(rigid, chain, priors[nodes]))
     fusion = Fusion(node_times, data, params.fusion, rigid)
@@ -161,9 +161,14 @@ def single_stage(
     return SingleStageResult(out, _as_edges(nodes, kept), solution, report, summary)
 
 
-def _rigid_groups(chain: Sequence[RelativeConstraint], n: int, size: int) -> RigidGroups:
-    """Stage 1: runs of ``size`` nodes chained from their first node (fmt-only)."""
-    group = (np.arange(n) // max(size, 2)).astype(np.int64)
+def _rigid_groups(
+    chain: Sequence[RelativeConstraint], node_times: Array, seconds: float
+) -> RigidGroups:
+    """Stage 1: runs of nodes ``seconds`` of survey long, chained from their first node
+    (fmt-only)."""
+    n = node_times.size
+    slot = np.floor((node_times - node_times[0]) / seconds).astype(np.int64)
+    group = np.unique(slot, return_inverse=True)[1].astype(np.int64).reshape(-1)
     chained = np.zeros((n, 3))
     by_j = {c.j: c for c in chain if c.j == c.i + 1}
     for k in range(1, n):
