@@ -250,7 +250,7 @@ def hamming_taper(mask: npt.NDArray[np.bool_], taper_px: int) -> FloatImage:
     return window.astype(np.float32)
 
 
-def _parabolic_offset(left: float, centre: float, right: float) -> float:
+def parabolic_offset(left: float, centre: float, right: float) -> float:
     """Sub-sample offset of a peak from three samples around it (in [-0.5, 0.5])."""
     denominator = left - 2.0 * centre + right
     if denominator >= 0.0 or not math.isfinite(denominator):
@@ -571,7 +571,7 @@ class FmtRegistrar:
         centre = round(centre_rad / self._angle_step)
         candidates = np.arange(centre - limit, centre + limit + 1) % n_angles
         best = int(candidates[np.argmax(line[candidates])])
-        offset = _parabolic_offset(
+        offset = parabolic_offset(
             float(line[(best - 1) % n_angles]),
             float(line[best]),
             float(line[(best + 1) % n_angles]),

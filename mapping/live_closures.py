@@ -43,7 +43,6 @@ from mapping.fmt import FmtRegistrar, PreparedFrame, RelativePose, SonarGrid
 from mapping.frames import SonarMount, compose, relative_pose
 from mapping.live_anchor import LiveAnchor
 from mapping.loops import footprint_overlap
-from mapping.overlap import OverlapRefiner
 
 Array = npt.NDArray[np.float64]
 
@@ -111,12 +110,6 @@ class LiveClosureParams:
     """Extra (forward, starboard) sigma of a closure between headings more than 90
     degrees apart (shading and shadows move with the look direction)."""
     opposite_yaw_sigma_deg: float = 0.6
-    refine: bool = False
-    """Each hypothesis registered again on the seabed both frames share
-    (``mapping.overlap``), as the survey-end pass's closures are. Off: on quadrats seed 6
-    at 2 Hz the live map's lanes went from 26.6 to 84.4 cm RMS with it (seed 5: 30.9 to
-    30.7); why is not yet known (the gate and the agreement of a new pair are tuned on
-    the registrar's own peaks)."""
     keyframe_sigma_m: float = 0.012
     """A keyframe's pose against the drawn map: frames are re-blended only when they
     moved more than ``StreamingParams.move_threshold_m`` (2 cm), so where the seabed is
@@ -315,7 +308,6 @@ class LiveClosures:
         self._last_attempt = -math.inf
         self._last_applied = -math.inf  # time_j of the last closure applied
         self._prepared: dict[int, PreparedFrame] = {}
-        self._refiner: OverlapRefiner | None = None
         self._pending: list[Closure] = []
         self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
         self._pairs: list[_Pair] = []
@@ -446,9 +438,8 @@ class LiveClosures:
         predicted = anchor.correction_covariance() + unknown
         sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
         sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
-        prepared = self._prepare(keyframe, registrar)
         reg = registrar.register_far(
-            prepared,
+            self._prepare(keyframe, registrar),
             image,
             relative_pose(keyframe.sonar, sonar),
             prior_sigma_m=sigma,
@@ -467,12 +458,7 @@ class LiveClosures:
             self.stats.rejected_weak += 1
             return None
         for rank, hyp in enumerate(reg.hypotheses or ()):
-            relative = hyp.relative
-            if p.refine:
-                if self._refiner is None or self._refiner.grid != registrar.grid:
-                    self._refiner = OverlapRefiner(registrar.grid, registrar.mask)
-                relative = self._refiner.refine(prepared.image, image, relative) or relative
-            vehicle = self.mount.vehicle_relative(relative)
+            vehicle = self.mount.vehicle_relative(hyp.relative)
             raw = self.mount.vehicle_covariance(hyp.covariance)
             implied = compose(keyframe.pose, vehicle)
             measured = _wrapped(

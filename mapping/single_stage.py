@@ -105,7 +105,7 @@ def single_stage(
         return SingleStageResult(out, [], None, report, {})
     node_times = times[nodes]
     data = fusion_data(inputs, node_times, params.graph.sonar_latency_s)
-    rigid = _rigid_groups(chain, times[nodes], rigid_s) if rigid_s else None
+    rigid = _rigid_groups(chain, node_times, rigid_s) if rigid_s else None
     if rigid is not None:
         chain = _loosen_links(chain, rigid, _internal_drift(rigid, chain, priors[nodes]))
     fusion = Fusion(node_times, data, params.fusion, rigid)
