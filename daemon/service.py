@@ -298,6 +298,8 @@ class Daemon:
             "rejected": dict(stats.rejected),
             "windows_solved": stats.windows_solved,
             "frames_reblended": stats.frames_reblended,
+            "resolves": stats.resolves,
+            "frames_redrawn": stats.frames_redrawn,
             "engine_restarts": mapper.stats.restarts,
             "ms_per_frame": {
                 k: round(1000 * v / max(stats.frames_received, 1), 2)

@@ -142,6 +142,20 @@ class RelativeConstraint:
     kind: str = "registration"
 
 
+@dataclass(frozen=True, slots=True)
+class PosePrior:
+    """Pose ``k`` held near ``pose`` (x, y metres, heading radians) with square-root
+    information ``sqrt_info`` (3 x 3): a frame already drawn that can no longer move, or
+    what a closure to such a frame says. ``robust``: down-weighted by the Cauchy kernel
+    when it disagrees with the rest."""
+
+    k: int
+    pose: Array
+    sqrt_info: Array
+    robust: bool = False
+    kind: str = "hold"
+
+
 def sqrt_information(covariance: Array) -> Array:
     """W with W^T W = covariance^-1 (from the Cholesky factor of the inverse)."""
     info = np.linalg.inv(np.asarray(covariance, float))
@@ -325,6 +339,31 @@ def _relative_factors(
     b.add(np.broadcast_to(rows, jw.shape), np.broadcast_to(cols, jw.shape), jw)
 
 
+def _prior_factors(b: _Builder, poses: Array, priors: Sequence[PosePrior], weights: Array) -> None:
+    if not priors:
+        return
+    k = np.array([p.k for p in priors], np.int64)
+    target = np.array([p.pose for p in priors], float)
+    wmat = np.stack([p.sqrt_info for p in priors]) * np.sqrt(weights)[:, None, None]
+    raw = poses[k] - target
+    raw[:, 2] = _wrap(raw[:, 2])
+    start = b.block("prior", np.einsum("mab,mb->ma", wmat, raw))
+    m = len(priors)
+    rows = start + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, :, None]
+    cols = (3 * k[:, None] + np.arange(3)[None, :])[:, None, :]
+    b.add(np.broadcast_to(rows, wmat.shape), np.broadcast_to(cols, wmat.shape), wmat)
+
+
+def prior_chi2(poses: Array, priors: Sequence[PosePrior]) -> Array:
+    """Squared Mahalanobis residual of each pose prior at ``poses``."""
+    if not priors:
+        return np.zeros(0)
+    b = _Builder()
+    _prior_factors(b, poses, priors, np.ones(len(priors)))
+    r = b.residuals[0].reshape(-1, 3)
+    return np.asarray((r * r).sum(axis=1), float)
+
+
 def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Array:
     """Squared Mahalanobis residual of each constraint at ``poses``."""
     if not constraints:
@@ -344,14 +383,18 @@ class Fusion:
         data: FusionData,
         params: FusionParams | None = None,
         rigid: RigidGroups | None = None,
+        priors: Sequence[PosePrior] = (),
     ):
         """rigid: frames held rigidly in groups (two-stage's submaps): each frame's pose is
         its group's anchor pose composed with a fixed offset, and the anchors are what is
-        solved for."""
+        solved for. priors: poses held near given values (the live re-solve's frames that
+        can no longer move, and its closures to them)."""
         self.params = params or FusionParams()
         self.times = np.asarray(times, float)
         self.data = data
         self.rigid = rigid
+        self.priors = list(priors)
+        self._prior_weights = np.ones(len(self.priors))
         g = self.params.gnss
         n = self.times.size
         if n == 0:
@@ -405,6 +448,7 @@ class Fusion:
         b = _Builder()
 
         _relative_factors(b, poses, constraints, weights)
+        _prior_factors(b, poses, self.priors, self._prior_weights)
 
         # GNSS fixes.
         d = self.data
@@ -593,13 +637,20 @@ class Fusion:
         lay = self.layout
         x = self.initial_state(initial_poses) if state is None else np.array(state, float)
         robust = np.array([c.robust for c in constraints], bool)
+        robust_priors = np.array([h.robust for h in self.priors], bool)
         weights = np.ones(len(constraints))
+        self._prior_weights = np.ones(len(self.priors))
         iterations = 0
         for iterations in range(1, p.max_iterations + 1):  # noqa: B007
             if robust.any():
                 sq = relative_chi2(self.frame_poses(x), constraints)
                 # Cauchy: w = 1 / (1 + e^2 / c^2), e the Mahalanobis residual.
                 weights = np.where(robust, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0)
+            if robust_priors.any():
+                sq = prior_chi2(self.frame_poses(x), self.priors)
+                self._prior_weights = np.where(
+                    robust_priors, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0
+                )
             residual, jac, _ = self._build(x, constraints, weights)
             normal = (jac.T @ jac).tocsc()
             normal = normal + sp.identity(lay.size, format="csc") * 1e-9

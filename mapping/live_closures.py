@@ -147,6 +147,8 @@ class Closure:
     keyframe_correction: Array
     chain_xy: Array
     d2: float
+    heading_i: float = 0.0
+    """The keyframe's heading when registered (the covariance's frame)."""
 
     @property
     def drift(self) -> Array:
@@ -247,6 +249,21 @@ class KeyframeStore:
         numbers = frame.pose.nbytes + frame.sonar.nbytes + frame.correction.nbytes
         return int(frame.image.nbytes + numbers)
 
+    def move(self, index: int, pose: Array, sonar: Array, correction: Array) -> None:
+        """A keyframe was drawn again at ``pose`` (its chain's ``correction`` now)."""
+        frame = self.frames.get(index)
+        if frame is None:
+            return
+        old, new = self._cell(frame.sonar), self._cell(sonar)
+        if old != new:
+            cell = self._cells.get(old)
+            if cell is not None and index in cell:
+                cell.remove(index)
+            self._cells.setdefault(new, []).append(index)
+        frame.pose = np.asarray(pose, float).copy()
+        frame.sonar = np.asarray(sonar, float).copy()
+        frame.correction = np.asarray(correction, float).copy()
+
     def _evict(self, index: int) -> None:
         frame = self.frames.pop(index)
         cell = self._cells.get(self._cell(frame.sonar))
@@ -311,6 +328,9 @@ class LiveClosures:
         self._pending: list[Closure] = []
         self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
         self._pairs: list[_Pair] = []
+        self.taken: list[Closure] = []
+        """Closures applied since the owner last emptied this list, as registered (for
+        the live re-solve, ``mapping.live_resolve``)."""
 
     def offer_keyframe(
         self,
@@ -329,6 +349,22 @@ class LiveClosures:
             self.stats.keyframes += 1
         self.stats.keyframes_evicted = self.store.evicted
         self.stats.keyframe_bytes = self.store.bytes
+
+    def rebase(self) -> None:
+        """The drawn map was re-solved (``mapping.live_resolve``): keyframes moved and
+        the anchor's correction with them. A confirmed pair's last closure takes its
+        keyframe's new correction (else the next closure of the pair would follow the
+        re-solve's move once more, as a bend of the map); closures waiting for agreement
+        were measured against the map as it was, and wait again."""
+        kept = []
+        for pair in self._pairs:
+            frame = self.store.frames.get(pair.last.i)
+            if frame is None:
+                continue
+            pair.last = replace(pair.last, keyframe_correction=frame.correction.copy())
+            kept.append(pair)
+        self._pairs = kept
+        self._pending = []
 
     def holding(self, now: float) -> float | None:
         """While closures of a new pair of passes wait for agreement (at survey time
@@ -403,6 +439,7 @@ class LiveClosures:
             pair.last, pair.misses = closure, 0
             anchor.shift(bend)
             self._apply(closure, anchor)
+            self.taken.append(closure)
             return True
         return self._confirm(closure, anchor, unknown)
 
@@ -472,6 +509,7 @@ class LiveClosures:
             closure = Closure(
                 keyframe.index, index, keyframe.time, time, vehicle, measured, covariance,
                 keyframe.correction, np.asarray(chain_xy, float).copy(), d2,
+                float(keyframe.pose[2]),
             )  # fmt: skip
             if self.log_attempts:
                 self._log(closure, rank, hyp.log_likelihood, hyp.score, raw, nu, s)
@@ -581,6 +619,7 @@ class LiveClosures:
             covariance = earlier.covariance + self._drift_between(earlier, closure, anchor)
             self._apply(replace(earlier, measured=measured, covariance=covariance), anchor)
         self._apply(closure, anchor)
+        self.taken.extend([*agreeing, closure])
         self._pending = []
         self._pairs.append(_Pair(closure))
         return True

@@ -200,7 +200,14 @@ def blend_frames(
         east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
         pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
         mosaic.insert(
-            index, sonar_frame.image, score, sonar_frame.mask, preprocessor.grid, pose, ping.time
+            index,
+            sonar_frame.image,
+            score,
+            sonar_frame.mask,
+            preprocessor.grid,
+            pose,
+            ping.time,
+            movable=False,
         )
         if index % 50 == 0:
             # Tiles the boat has left leave memory (a no-op in short surveys).

@@ -10,9 +10,12 @@ predecessor's pose, and blended into the tile store at once. Every ``solve_every
 accepted frames the pose graph of the last ``window_frames`` frames is re-solved, the
 frame before the window held where it is; frames whose pose moves by more than
 ``move_threshold_m`` are taken out of their tiles and put back. A frame's pose is final
-when it leaves the window, and its image is dropped.
+when it leaves the window; its image is kept (uint8, bounded) so that the live re-solve
+(``mapping.live_resolve``: every ``resolve.every_s`` of survey time, the drawn frames
+placed again by the survey-end pass's fusion) can draw it again where it now belongs.
 
-Out come pose updates (per frame, and again when a pose moves or becomes final) and tile
+Out come pose updates (per frame, and again when a pose moves or becomes final, or when
+a re-solve draws a final frame again) and tile
 updates (rendered at most every ``render_every_s`` of survey time, with a growing
 version), through callbacks. ``finish`` is the survey-end pass: the whole survey
 re-solved offline (smoothed EKF, loop closures, single- or two-stage) with the
@@ -39,12 +42,20 @@ from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.geo import LocalFrame
 from mapping.live_anchor import AnchorParams, LiveAnchor
 from mapping.live_closures import LiveClosureParams, LiveClosures
+from mapping.live_resolve import (
+    LiveResolver,
+    ResolveClosure,
+    ResolveParams,
+    align,
+    pack,
+)
 from mapping.mosaic import SonarPose, TileGrid, TileKey
 from mapping.navigation import position_sigma
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.polar import Attitude
 from mapping.posegraph import Edge
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+from mapping.survey_graph import registration_sqrt_info
 from mapping.tiles import TileImage, TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -89,6 +100,11 @@ class StreamingParams:
     """How the live chain is tied to the GNSS and the heading filter."""
     closures: LiveClosureParams = field(default_factory=LiveClosureParams)
     """Live loop closures against keyframes of the final map."""
+    resolve: ResolveParams = field(default_factory=ResolveParams)
+    """The drawn map re-solved and redrawn every few seconds of survey."""
+    resolve_tiles_in_memory: int = 16
+    """While redrawing, tiles idle for ``evict_after_s`` leave memory once more than this
+    many are loaded (5.2 MB each): a redraw over an old stretch loads its tiles."""
     bridge_velocity_age_s: float = 5.0
     """A frame the registration could not chain is bridged at the speed (vehicle frame)
     the registrations last measured when they measured it this recently, else by the
@@ -151,6 +167,9 @@ class StreamStats:
     samples_duplicate: int = 0
     windows_solved: int = 0
     frames_reblended: int = 0
+    resolves: int = 0
+    frames_redrawn: int = 0
+    """Final frames drawn again after a re-solve moved them."""
     rejected: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
 
@@ -241,6 +260,8 @@ class StreamingEngine:
         self._registered_velocity: tuple[float, float, float] | None = None  # fwd, stbd, time
         self._pending_fixes: deque[tuple[float, float, float]] = deque(maxlen=256)
         self.closures: LiveClosures | None = None  # once the sonar's geometry is known
+        single = p.single_stage
+        self.resolver = LiveResolver(self.params.resolve, single.fusion, single.graph)
         # The raw navigation for the survey-end pass: IMU rows compactly in arrays.
         self._imu = _ImuRecord()
         self._fixes: list[GnssFix] = []
@@ -304,6 +325,7 @@ class StreamingEngine:
             pitch = att.pitch_rad if roll is not None and att is not None else None
             fwd, stbd, rate = level_imu(sample.accel_mps2, sample.gyro_rps, roll, pitch)
             self.nav.add_imu(ImuInput(sample.time, fwd, stbd, rate))
+            self.resolver.add_yaw_rate(sample.time, rate)
         elif isinstance(sample, AttitudeSample):
             self._attitudes.append(sample)
             self._recent_attitude.append(sample)
@@ -311,6 +333,8 @@ class StreamingEngine:
         elif isinstance(sample, HeadingSample):
             self._headings.append(sample)
             self._pending_heading = sample
+            if self.frame is not None:
+                self.resolver.add_heading(sample.time, self._grid_heading(sample))
             if self.nav.initialised and self.frame is not None:
                 heading = self._grid_heading(sample)
                 sigma = math.hypot(
@@ -359,6 +383,7 @@ class StreamingEngine:
             self._convergence = self.frame.convergence_rad(fix.lat_deg, fix.lon_deg)
         xs, ys = self.frame.to_local([fix.lat_deg], [fix.lon_deg])
         x, y = float(xs[0]), float(ys[0])
+        self.resolver.add_gnss(fix.time, x, y)
         vx = vy = math.nan
         if (
             fix.speed_mps is not None
@@ -405,12 +430,22 @@ class StreamingEngine:
             return
         assert prior is not None
         stats.frames_mapped += 1
+        sqrt_info = None
+        if outcome.edge is not None:
+            sqrt_info = registration_sqrt_info(
+                outcome,
+                self.mount,
+                self.params.pipeline.single_stage.graph,
+                ping.time - self.times[outcome.edge.i],
+            )
+        self.resolver.add_frame(index, ping.time, prior, outcome.edge, sqrt_info)
         outcome.registration = None  # the edge is what is kept of it
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
         self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
         started = stats.time("blending", started)
         self._close_loop(index, ping.time, sonar_frame.image)
+        self._take_closures()
         self._bends_at[index] = self.anchor.bends.copy()
         started = stats.time("closures", started)
         pose = self._live_pose(index)
@@ -432,6 +467,8 @@ class StreamingEngine:
         self._since_solve += 1
         if self._since_solve >= self.params.solve_every:
             self._solve_window(final=False)
+        if self.resolver.due(ping.time):
+            self._resolve(ping.time)
         self._render(force=False)
 
     def _insert(
@@ -529,8 +566,11 @@ class StreamingEngine:
                 w = min(max((t_fix - t0) / max(time - t0, 1e-6), 0.0), 1.0)
                 at = (1 - w) * self._chain[last] + w * self._chain[index]
                 self.anchor.update_position(t_fix, (x - float(at[0]), y - float(at[1])))
+            # The filter's heading carries the compass's error; the last re-solve
+            # estimated it (misalignment and deviation).
+            heading = float(prior[2]) - self.resolver.compass_error(float(prior[2]))
             self.anchor.update_heading(
-                time, math.remainder(float(prior[2]) - self._chain_heading[index], 2 * math.pi)
+                time, math.remainder(heading - self._chain_heading[index], 2 * math.pi)
             )
         if odometry is not None:
             self._odometry[index] = odometry
@@ -624,7 +664,7 @@ class StreamingEngine:
         for k in accepted[self._final_upto : upto]:
             live = self._live.pop(k, None)
             if live is not None:
-                self.tiles.settle(k, live.tiles)
+                self._keep_drawn(k, live)
                 if self.closures is not None:
                     # The correction it is drawn with: its pose less its chained one.
                     pose = self.poses[k]
@@ -653,6 +693,127 @@ class StreamingEngine:
                 self._bends_at.pop(k, None)
         self._final_upto = upto
         self.stats.time("blending", started)
+
+    # -- the live re-solve ---------------------------------------------------------------
+    def _keep_drawn(self, k: int, live: _Live) -> None:
+        """A frame became final: its image is kept to draw it again after a re-solve (or,
+        with re-solves off, its tiles forget it)."""
+        if not self.params.resolve.enabled:
+            self.tiles.settle(k, live.tiles)
+            return
+        chain = np.array([*self._chain[k], self._chain_heading[k]])
+        drawn = pack(
+            k, live.time, live.image, live.score, live.mask, live.grid, live.tiles,
+            live.blended_pose, chain,
+        )  # fmt: skip
+        for old in self.resolver.keep(drawn):
+            self.tiles.settle(old.index, old.tiles)
+
+    def _take_closures(self) -> None:
+        """Closures the live anchor took are kept for the re-solve (covariance in the
+        keyframe's vehicle frame)."""
+        if self.closures is None or not self.closures.taken:
+            return
+        for c in self.closures.taken:
+            s, co = math.sin(c.heading_i), math.cos(c.heading_i)
+            rot = np.array([[s, co, 0.0], [co, -s, 0.0], [0.0, 0.0, 1.0]])
+            cov = rot.T @ c.covariance @ rot
+            r = c.relative
+            self.resolver.add_closure(
+                ResolveClosure(c.i, c.j, r.forward_m, r.starboard_m, r.yaw_rad, cov)
+            )
+        self.closures.taken.clear()
+
+    def _resolve(self, now: float) -> None:
+        """Re-solve the drawn frames (``mapping.live_resolve``), draw again those that
+        moved, and carry the chain on from the new map."""
+        started = clock.perf_counter()
+        resolver = self.resolver
+        resolver.last_solve_time = now
+        out = resolver.solve(self.poses)
+        if out is None:
+            return
+        nodes, solved = out
+        self.stats.resolves += 1
+        rp = self.params.resolve
+        if nodes[0] in resolver.drawn:
+            # Nothing holds the stretch (no frame before it is fixed): keep the drawn
+            # map's georeferencing and change only its shape.
+            drawn_poses = np.array([self.poses[k] for k in nodes])
+            aligned = align(solved, drawn_poses, math.radians(rp.max_turn_deg))
+        else:
+            aligned = solved
+        solved = aligned
+        last = nodes[-1]
+        was_last = self.poses[last].copy()
+        moved_nodes: list[int] = []
+        for m, k in enumerate(nodes):
+            drawn = resolver.drawn.get(k)
+            if drawn is None:
+                continue
+            sonar = self.mount.sonar_pose(solved[m])
+            moved = math.hypot(sonar[0] - drawn.blended_sonar[0], sonar[1] - drawn.blended_sonar[1])
+            moved += 5.0 * abs(math.remainder(sonar[2] - drawn.blended_sonar[2], 2 * math.pi))
+            if moved > rp.redraw_m:
+                moved_nodes.append(m)
+        # Every frame that moved is redrawn: redrawing only those that moved most (at
+        # most two or four per new frame) left neighbours drawn apart (quadrats seed 6 at
+        # 2 Hz: live lanes 8.0 -> 11.9 / 10.4 cm, quadrat spacing 2.1 -> 4.4 / 6.5 cm).
+        recent: deque[list[TileKey]] = deque(maxlen=10)
+        for m in moved_nodes:
+            k, pose = nodes[m], solved[m]
+            drawn = resolver.drawn[k]
+            sonar = self.mount.sonar_pose(pose)
+            self.tiles.remove(k, drawn.tiles)
+            image, score, mask = drawn.layers()
+            drawn.tiles = self._insert(k, image, score, mask, drawn.grid, sonar, drawn.time)
+            drawn.blended_sonar = sonar
+            self.poses[k] = np.array(pose, float)
+            resolver.stats.redrawn += 1
+            self.stats.frames_redrawn += 1
+            recent.append(drawn.tiles)
+            if len(self.tiles.active) > self.params.resolve_tiles_in_memory:
+                # Tiles of a stretch the boat has left were loaded to be redrawn: they
+                # leave memory again as the redraw moves on (memory follows the area),
+                # but not those the last few redraws used (the next ones use them too).
+                self._evict(now, {key for tiles in recent for key in tiles})
+            self._emit_pose(k, final=True)
+            if self.closures is not None:
+                correction = np.array(
+                    [
+                        pose[0] - drawn.chain[0],
+                        pose[1] - drawn.chain[1],
+                        math.remainder(float(pose[2]) - drawn.chain[2], 2 * math.pi),
+                    ]
+                )
+                self.closures.store.move(k, pose, sonar, correction)
+        resolver.redrawn(now, len(moved_nodes))
+        if self.closures is not None:
+            self.closures.rebase()
+        # The chain carries on from the re-solved map: the frames drawn since the last
+        # node (the live window) move with it, turned about that node.
+        n = self._last_chained
+        if n is not None and n in self._chain:
+            turn = (
+                math.remainder(float(solved[-1][2]) - float(was_last[2]), 2 * math.pi)
+                if self.params.resolve.carry_turn
+                else 0.0
+            )
+            live_n = self._live_pose(n)
+            de, dn = live_n[0] - was_last[0], live_n[1] - was_last[1]
+            s, c = math.sin(turn), math.cos(turn)
+            target = (solved[-1][0] + de * c + dn * s, solved[-1][1] - de * s + dn * c)
+            move_e, move_n = target[0] - live_n[0], target[1] - live_n[1]
+            self.anchor.x[0] += move_e
+            self.anchor.x[1] += move_n
+            self.anchor.x[4] += turn
+            # What the GNSS sees of the chain stays: the fixes since the last node were
+            # taken against it, and the solution's own bias is not known beyond that
+            # node (there it decays towards zero: quadrats seed 6 at 2 Hz, a 1 m jump).
+            self.anchor.x[2] -= move_e
+            self.anchor.x[3] -= move_n
+        resolver.stats.seconds += clock.perf_counter() - started
+        self.stats.time("resolve", started)
 
     def _reblend_if_moved(self, k: int, threshold: float) -> None:
         live = self._live[k]
@@ -694,10 +855,15 @@ class StreamingEngine:
             self._last_refine = now
         for image in self.tiles.render_dirty(new_only=not full):
             self._publish(image)
+        self._evict(now)
+        self.stats.time("render", started)
+
+    def _evict(self, now: float, also_keep: set[TileKey] | None = None) -> None:
         keep = {key for live in self._live.values() for key in live.tiles}
+        if also_keep:
+            keep |= also_keep
         for image in self.tiles.evict_idle(now, keep):
             self._publish(image)
-        self.stats.time("render", started)
 
     def _publish(self, image: TileImage) -> None:
         frames = tuple(self._pending_frames.pop(image.key, ()))

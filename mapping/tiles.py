@@ -164,6 +164,8 @@ class TileStore:
         self.spilled = 0
         self.reloaded = 0
         self._fan_samples: dict[int, tuple[npt.NDArray[np.bool_], FanPoints, float]] = {}
+        self.movable: set[int] = set()
+        """Frames that may still be taken out (inserted and not settled)."""
         # s^gamma for every quantised score.
         levels = np.arange(65536, dtype=np.float64) / 65535.0
         self._weight_lut = (levels**self.params.gamma).astype(np.float32)
@@ -184,6 +186,13 @@ class TileStore:
                 np.asarray(stored["frame"], np.uint16),
                 rendered=np.asarray(stored["rendered"], np.uint8),
             )
+            boxes = stored.get("boxes")
+            if boxes is not None:
+                tile.boxes = {
+                    int(r[0]): (int(r[1]), int(r[2]), int(r[3]), int(r[4]))
+                    for r in np.asarray(boxes).tolist()
+                    if int(r[0]) in self.movable
+                }
             self.reloaded += 1
         tile.version = self.versions.get(key, 0)
         self.active[key] = tile
@@ -200,15 +209,17 @@ class TileStore:
             if tile.dirty or tile.rendered is None:
                 out.append(self.render(key))
             assert tile.rendered is not None
-            self.spill.save(
-                key,
-                {
-                    "intensity": tile.intensity,
-                    "score": tile.score,
-                    "frame": tile.frame,
-                    "rendered": tile.rendered,
-                },
-            )
+            arrays: dict[str, npt.NDArray[np.generic]] = {
+                "intensity": tile.intensity,
+                "score": tile.score,
+                "frame": tile.frame,
+                "rendered": tile.rendered,
+            }
+            moving = [(k, *box) for k, box in tile.boxes.items() if k in self.movable]
+            if moving:
+                # Frames that may still move (the live re-solve) keep where they went.
+                arrays["boxes"] = np.array(moving, np.int64).reshape(-1, 5)
+            self.spill.save(key, arrays)
             del self.active[key]
             self.spilled += 1
         return out
@@ -273,10 +284,14 @@ class TileStore:
         grid: SonarGrid,
         pose: SonarPose,
         time: float,
+        movable: bool = True,
     ) -> list[TileKey]:
-        """Offer one frame's pixels at ``pose`` to the tiles it covers."""
+        """Offer one frame's pixels at ``pose`` to the tiles it covers; ``movable``: it
+        may be taken out again (``remove``) until it is settled."""
         layers = np.dstack([image, score, mask.astype(np.float32)])
         tag = np.uint16(frame_index % 0xFFFF)
+        if movable:
+            self.movable.add(frame_index)
         touched = []
         for key, box in self._boxes(grid, mask, pose).items():
             warped = warp_to_tile(layers, grid, pose, self.grid, key, box)
@@ -304,7 +319,8 @@ class TileStore:
                 tile.score.reshape(-1)[flat] = scores[rows, cols]
                 tile.intensity.reshape(-1)[flat] = values[rows, cols]
                 tile.frame.reshape(-1)[flat] = tag
-            tile.boxes[frame_index] = box
+            if movable:
+                tile.boxes[frame_index] = box
             tile.last_touch = max(tile.last_touch, time)
             touched.append(key)
         return touched
@@ -320,13 +336,16 @@ class TileStore:
             r0, r1, c0, c1 = box
             frames = tile.frame[:, r0:r1, c0:c1]
             hit = frames == tag
-            tile.score[:, r0:r1, c0:c1][hit] = 0
-            tile.intensity[:, r0:r1, c0:c1][hit] = 0
-            frames[hit] = NO_FRAME
+            # In place under the mask (boolean fancy indexing is several times slower).
+            np.copyto(tile.score[:, r0:r1, c0:c1], 0, where=hit)
+            np.copyto(tile.intensity[:, r0:r1, c0:c1], 0, where=hit)
+            np.copyto(frames, NO_FRAME, where=hit)
             tile.mark(box, hit.any(axis=0))
 
     def settle(self, frame_index: int, keys: Iterable[TileKey]) -> None:
-        """A frame will not move again: forget where it went."""
+        """A frame will not move again: forget where it went (in a spilled tile, when it
+        is next loaded)."""
+        self.movable.discard(frame_index)
         for key in keys:
             tile = self.active.get(key)
             if tile is not None:

@@ -304,6 +304,8 @@ def replay(
             "samples_duplicate": stats.samples_duplicate,
             "windows_solved": stats.windows_solved,
             "frames_reblended": stats.frames_reblended,
+            "resolves": stats.resolves,
+            "frames_redrawn": stats.frames_redrawn,
             "ms_per_frame": {
                 k: round(1000 * v / max(stats.frames_received, 1), 3)
                 for k, v in stats.stage_s.items()

@@ -1,0 +1,462 @@
+"""The live map re-solved: every few seconds of survey the frames already drawn are placed
+again by the survey-end pass's fusion (``mapping.fusion``), and those that moved are drawn
+again where they now belong.
+
+The live chain (``mapping.live_anchor``) places each frame once, with what is known when
+it arrives. The first lane is drawn before any closure or much GNSS has been seen: with
+the compass's misalignment (a few degrees, measured 4.8 degrees on one simulated field
+day) in its heading, a lane drawn 7-10 degrees off the final map and every later pass
+tied to it by the closures. Only a solution over the whole stretch can see that the
+compass is biased (its bias and deviation are states of the fusion), where the GNSS
+offset went between the lanes, and how the closures hold the lanes together; the
+survey-end pass has it, the live chain cannot. So the live map is solved again in the
+background, as real-time SLAM systems do after a loop closure (ORB-SLAM's pose-graph
+optimisation, Mur-Artal & Tardos 2017, doi:10.1109/TRO.2017.2705103), over a bounded
+stretch:
+
+- the frames drawn within ``window_s`` whose images are still kept (``memory_mb``,
+  uint8: the blending image and score as the tiles store them) are nodes of the fusion
+  with their live registrations (their own covariances), odometry bridges where a frame
+  was rejected, the GNSS fixes with their Gauss-Markov bias, the compass with its bias
+  and deviation, the gyro with its bias, and the live closures that were applied (robust,
+  Cauchy);
+- the frame before the oldest node (its image gone: it can no longer be drawn again) is
+  held where it is drawn, and so are the closures' keyframes outside the stretch: a
+  closure to one of them holds its frame where the keyframe's drawn pose and the
+  registration put it;
+- a frame whose fan moved by more than ``redraw_m`` is taken out of its tiles and drawn
+  again at its new pose; the pose published and kept for it is always the pose it is
+  drawn at.
+
+The chain then carries on from the re-solved map: its correction is moved so that the
+last frame drawn is where the solution puts it (what the GNSS sees of the chain stays),
+and the compass heading reaches the chain less the compass error the solution found.
+
+Everything runs at fixed points of survey time, so a replay of the same logs gives the
+same live map whatever the machine's speed.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.fmt import RelativePose, SonarGrid
+from mapping.frames import compose
+from mapping.fusion import (
+    Fusion,
+    FusionData,
+    FusionParams,
+    PosePrior,
+    RelativeConstraint,
+    diagonal_sqrt_info,
+    sqrt_information,
+)
+from mapping.mosaic import TileKey
+from mapping.posegraph import Edge
+from mapping.survey_graph import GraphParams, odometry_constraint
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class ResolveParams:
+    enabled: bool = True
+    every_s: float = 10.0
+    """Survey time between two re-solves."""
+    window_s: float = 600.0
+    """Frames drawn longer ago than this are no longer moved (their images are let go)."""
+    memory_mb: float = 256.0
+    """Images of drawn frames kept to draw them again (the oldest go first): about
+    0.15 MB a frame on a 5 m fan at 2 cm."""
+    redraw_m: float = 0.03
+    """A frame whose fan moved more than this (its far edge, 5 m out, for a turn) is drawn
+    again: one and a half mosaic pixels."""
+    redraw_rate: float = 20.0
+    """Redraws per second of survey, on average: after a re-solve that redrew R frames
+    the next waits R / this (at least ``every_s``). A redraw costs about a blend (12 ms
+    here); the whole stretch turns by a degree when the compass's misalignment is
+    learned, and every frame of it is redrawn (redrawing only some, those that moved
+    most, left neighbours drawn apart: quadrats seed 6 at 2 Hz, live lanes 8.0 -> 11.9
+    cm, quadrat spacing 2.1 -> 4.4 cm). So the re-solves space out as the stretch grows,
+    and the live engine keeps up at any ping rate."""
+    carry_turn: bool = False
+    """The chain after the re-solved stretch turns with its last frame (else it keeps its
+    own heading and only moves with it)."""
+    max_turn_deg: float = 0.25
+    """The re-solved stretch is first moved, and turned by up to this, to fit where it is
+    drawn (``align``): 4 cm at 10 m."""
+    hold_sigma_m: float = 0.01
+    """How firmly a frame that can no longer move holds the map (and a closure's
+    keyframe outside the stretch): where it is drawn is within a pixel of where its
+    last solution put it."""
+    hold_sigma_deg: float = 0.05
+
+
+@dataclass(slots=True)
+class Drawn:
+    """A final frame that may still be drawn again: its blending image as the tiles store
+    it, where it went, and its chain pose (for the keyframes' corrections)."""
+
+    index: int
+    time: float
+    image: npt.NDArray[np.uint8]
+    score: npt.NDArray[np.uint16]
+    mask: npt.NDArray[np.uint8]  # packed bits
+    grid: SonarGrid
+    tiles: list[TileKey]
+    blended_sonar: Array
+    chain: Array  # chain x, y, heading
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.image.nbytes + self.score.nbytes + self.mask.nbytes) + 200
+
+    def layers(
+        self,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+        """Image, score and mask as the tile store takes them."""
+        size = self.grid.shape[0] * self.grid.shape[1]
+        mask = np.unpackbits(self.mask, count=size).reshape(self.grid.shape).astype(bool)
+        image = self.image.astype(np.float32) * np.float32(1 / 255)
+        score = self.score.astype(np.float32) * np.float32(1 / 65535)
+        return image, score, mask
+
+
+def pack(
+    index: int,
+    time: float,
+    image: npt.NDArray[np.float32],
+    score: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.bool_],
+    grid: SonarGrid,
+    tiles: list[TileKey],
+    blended_sonar: Array,
+    chain: Array,
+) -> Drawn:
+    return Drawn(
+        index,
+        time,
+        np.clip(np.rint(image * np.float32(255.0)), 0, 255).astype(np.uint8),
+        np.clip(np.rint(score * np.float32(65535.0)), 0, 65535).astype(np.uint16),
+        np.packbits(mask.ravel()),
+        grid,
+        list(tiles),
+        np.asarray(blended_sonar, float).copy(),
+        np.asarray(chain, float).copy(),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ResolveClosure:
+    """An applied live closure: vehicle j in vehicle i, covariance in i's frame."""
+
+    i: int
+    j: int
+    forward_m: float
+    starboard_m: float
+    yaw_rad: float
+    covariance: Array
+
+
+@dataclass
+class ResolveStats:
+    solves: int = 0
+    nodes: int = 0
+    """Nodes of the last solve."""
+    redrawn: int = 0
+    archived_bytes: int = 0
+    released: int = 0
+    closures: int = 0
+    seconds: float = 0.0
+
+
+class LiveResolver:
+    """Keeps what a re-solve needs: the navigation measurements (small, as they come), the
+    accepted frames' priors and registrations, the drawn frames' images (bounded), the
+    applied closures. ``solve`` places the kept frames again; the engine redraws."""
+
+    def __init__(self, params: ResolveParams, fusion: FusionParams, graph: GraphParams) -> None:
+        self.params = params
+        self.fusion = fusion
+        self.graph = graph
+        # Navigation, compactly.
+        self._gnss_t = array("d")
+        self._gnss_x = array("d")
+        self._gnss_y = array("d")
+        self._head_t = array("d")
+        self._head = array("d")
+        self._imu_t = array("d")
+        self._imu_yaw = array("d")  # integrated levelled yaw rate
+        self._last_rate = 0.0
+        # Frames.
+        self.accepted: list[int] = []
+        self.times: dict[int, float] = {}
+        self.priors: dict[int, Array] = {}
+        self.registrations: dict[int, tuple[int, Edge, Array]] = {}  # j -> (i, edge, W)
+        self.drawn: OrderedDict[int, Drawn] = OrderedDict()
+        self.bytes = 0
+        self.closures: list[ResolveClosure] = []
+        self.stats = ResolveStats()
+        self.compass: Array | None = None
+        """The compass error coefficients of the last solve (1, sin, cos, sin 2, cos 2)."""
+        self.last_solve_time = -math.inf
+        self.next_solve_time = -math.inf
+
+    # -- what comes in -----------------------------------------------------------------
+    def add_gnss(self, time: float, x: float, y: float) -> None:
+        self._gnss_t.append(time)
+        self._gnss_x.append(x)
+        self._gnss_y.append(y)
+
+    def add_heading(self, time: float, grid_heading: float) -> None:
+        self._head_t.append(time)
+        self._head.append(grid_heading)
+
+    def add_yaw_rate(self, time: float, rate: float) -> None:
+        if self._imu_t and time <= self._imu_t[-1]:
+            return
+        if self._imu_t:
+            dt = time - self._imu_t[-1]
+            self._imu_yaw.append(self._imu_yaw[-1] + 0.5 * (rate + self._last_rate) * dt)
+        else:
+            self._imu_yaw.append(0.0)
+        self._imu_t.append(time)
+        self._last_rate = rate
+
+    def add_frame(
+        self, index: int, time: float, prior: Array, edge: Edge | None, sqrt_info: Array | None
+    ) -> None:
+        """An accepted frame: its navigation prior, and its registration to the previous
+        accepted frame (with its square-root information) when it has one."""
+        self.accepted.append(index)
+        self.times[index] = time
+        self.priors[index] = np.asarray(prior, float).copy()
+        if edge is not None and sqrt_info is not None:
+            self.registrations[index] = (edge.i, edge, sqrt_info)
+
+    def add_closure(self, closure: ResolveClosure) -> None:
+        self.closures.append(closure)
+
+    def keep(self, drawn: Drawn) -> list[Drawn]:
+        """Keep a final frame's image; returns the frames let go to make room (oldest
+        first, their tiles to be settled)."""
+        self.drawn[drawn.index] = drawn
+        self.bytes += drawn.nbytes
+        out = []
+        limit = self.params.memory_mb * 2**20
+        while self.drawn and (
+            self.bytes > limit
+            or drawn.time - next(iter(self.drawn.values())).time > self.params.window_s
+            # Tile tags are frame indices modulo 65535: unique among movable frames.
+            or drawn.index - next(iter(self.drawn)) >= 60000
+        ):
+            _, old = self.drawn.popitem(last=False)
+            self.bytes -= old.nbytes
+            out.append(old)
+        self.stats.archived_bytes = self.bytes
+        self.stats.released += len(out)
+        return out
+
+    # -- the solve -----------------------------------------------------------------------
+    def due(self, now: float) -> bool:
+        return (
+            self.params.enabled
+            and len(self.drawn) >= 2
+            and now - self.last_solve_time >= self.params.every_s
+            and now >= self.next_solve_time
+        )
+
+    def redrawn(self, now: float, count: int) -> None:
+        """A re-solve at ``now`` redrew ``count`` frames: when the next may come."""
+        p = self.params
+        self.next_solve_time = now + max(p.every_s, count / max(p.redraw_rate, 1e-9))
+
+    def solve(self, drawn_poses: dict[int, Array] | list[Array]) -> tuple[list[int], Array] | None:
+        """Place the kept frames again. ``drawn_poses[k]``: where frame k is drawn now
+        (vehicle pose). Returns the nodes (frame indices) and their solved poses, or
+        None when there is nothing to solve."""
+        p = self.params
+        if not self.drawn:
+            return None
+        first = next(iter(self.drawn))
+        last = next(reversed(self.drawn))
+        start = self.accepted.index(first) if first in self.times else 0
+        nodes = [k for k in self.accepted[start:] if k <= last]
+        hold_info = diagonal_sqrt_info(
+            (p.hold_sigma_m, p.hold_sigma_m, math.radians(p.hold_sigma_deg))
+        )
+        priors: list[PosePrior] = []
+        if start > 0:
+            boundary = self.accepted[start - 1]
+            nodes.insert(0, boundary)
+            priors.append(PosePrior(0, np.asarray(drawn_poses[boundary], float), hold_info))
+        self._forget_before(nodes[0])
+        if len(nodes) < 2:
+            return None
+        position = {k: i for i, k in enumerate(nodes)}
+        times = np.array([self.times[k] for k in nodes])
+        constraints: list[RelativeConstraint] = []
+        for a in range(1, len(nodes)):
+            k_prev, k = nodes[a - 1], nodes[a]
+            reg = self.registrations.get(k)
+            if reg is not None and reg[0] == k_prev:
+                _, edge, w = reg
+                constraints.append(
+                    RelativeConstraint(a - 1, a, edge.forward_m, edge.starboard_m, edge.yaw_rad, w)
+                )
+            else:
+                constraints.append(
+                    odometry_constraint(
+                        a - 1, a, self.priors[k_prev], self.priors[k],
+                        float(times[a] - times[a - 1]), self.graph,
+                    )
+                )  # fmt: skip
+        hold_cov = np.diag([p.hold_sigma_m**2] * 2 + [math.radians(p.hold_sigma_deg) ** 2])
+        used = 0
+        for c in self.closures:
+            if c.j not in position:
+                continue
+            if c.i in position:
+                constraints.append(
+                    RelativeConstraint(
+                        position[c.i], position[c.j], c.forward_m, c.starboard_m, c.yaw_rad,
+                        sqrt_information(c.covariance), robust=True, kind="closure",
+                    )
+                )  # fmt: skip
+                used += 1
+            elif c.i < nodes[0]:
+                anchor = np.asarray(drawn_poses[c.i], float)
+                if not np.all(np.isfinite(anchor)):
+                    continue
+                implied = compose(anchor, _relative(c))
+                s, co = math.sin(anchor[2]), math.cos(anchor[2])
+                rot = np.array([[s, co, 0.0], [co, -s, 0.0], [0.0, 0.0, 1.0]])
+                cov = rot @ c.covariance @ rot.T + hold_cov
+                priors.append(
+                    PosePrior(position[c.j], implied, sqrt_information(cov), True, "closure")
+                )
+                used += 1
+        data = self._data(times)
+        initial = np.array([drawn_poses[k] for k in nodes], float)
+        fusion = Fusion(times, data, self.fusion, priors=priors)
+        solution, _ = fusion.solve(initial, constraints)
+        self.compass = solution.compass_coefficients.copy()
+        self.stats.solves += 1
+        self.stats.nodes = len(nodes)
+        self.stats.closures = used
+        return nodes, solution.poses
+
+    def compass_error(self, heading: float) -> float:
+        """What the compass adds to a true grid heading, by the last solve (radians)."""
+        c = self.compass
+        if c is None:
+            return 0.0
+        f = np.array(
+            [
+                1.0,
+                math.sin(heading),
+                math.cos(heading),
+                math.sin(2 * heading),
+                math.cos(2 * heading),
+            ]
+        )
+        return float(f @ c)
+
+    def _data(self, times: Array) -> FusionData:
+        t0, t1 = float(times[0]) - 5.0, float(times[-1]) + 5.0
+        gt = np.frombuffer(self._gnss_t, float)
+        g_in = (gt >= t0) & (gt <= t1)
+        gnss_xy = np.column_stack(
+            [np.frombuffer(self._gnss_x, float)[g_in], np.frombuffer(self._gnss_y, float)[g_in]]
+        )
+        ht = np.frombuffer(self._head_t, float)
+        h_in = (ht >= t0) & (ht <= t1)
+        n = times.size
+        yaw = np.full(n, np.nan)
+        gap = np.zeros(n, bool)
+        it = np.frombuffer(self._imu_t, float)
+        if it.size >= 2:
+            integral = np.frombuffer(self._imu_yaw, float)
+            query = times - self.graph.sonar_latency_s
+            inside = (query >= it[0]) & (query <= it[-1])
+            yaw[inside] = np.interp(query[inside], it, integral)
+            gaps = np.flatnonzero(np.diff(it) > 0.5)
+            if gaps.size:
+                prev = np.concatenate([[query[0]], query[:-1]])
+                for a, b in zip(it[gaps], it[gaps + 1], strict=True):
+                    gap |= (prev < b) & (query > a)
+        return FusionData(
+            gt[g_in].copy(),
+            gnss_xy,
+            ht[h_in].copy(),
+            np.frombuffer(self._head, float)[h_in].copy(),
+            yaw,
+            gap,
+        )
+
+    def _forget_before(self, first: int) -> None:
+        """Frames before the oldest node will not be solved again: their priors and
+        registrations go (their drawn poses stay with the engine), and so do the
+        measurements older than they need."""
+        if not self.accepted or self.accepted[0] >= first:
+            return
+        cut = self.accepted.index(first) if first in self.times else 0
+        for k in self.accepted[:cut]:
+            self.times.pop(k, None)
+            self.priors.pop(k, None)
+            self.registrations.pop(k, None)
+        del self.accepted[:cut]
+        self.closures = [c for c in self.closures if c.j >= first]
+        t0 = self.times[first] - 10.0
+        for ts, others in (
+            (self._gnss_t, (self._gnss_x, self._gnss_y)),
+            (self._head_t, (self._head,)),
+            (self._imu_t, (self._imu_yaw,)),
+        ):
+            drop = int(np.searchsorted(np.frombuffer(ts, float), t0)) if ts else 0
+            if drop > 1000:
+                del ts[:drop]
+                for other in others:
+                    del other[:drop]
+
+
+def align(solved: Array, drawn: Array, max_turn_rad: float) -> Array:
+    """``solved`` (n, 3) moved by the translation, and the turn up to ``max_turn_rad``,
+    that bring its positions nearest (least squares, 2-D Procrustes) to ``drawn``.
+
+    A new fix moves a whole stretch by a centimetre or two and turns it by a tenth of a
+    degree: the drawn map should change where its shape does, not chase that (each
+    chase is a redraw of every frame). The turn is bounded: the map's orientation is the
+    GNSS's over the whole survey, and a map turned to fit what was drawn leaves the
+    chain, which follows the GNSS, further off the further it goes (measured with the
+    turn unbounded: quadrats seed 6 at 2 Hz, live lanes 11 -> 20 cm)."""
+    a = np.asarray(solved, float)
+    b = np.asarray(drawn, float)
+    ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+    out = a.copy()
+    if not ok.any():
+        return out
+    ca, cb = a[ok, :2].mean(axis=0), b[ok, :2].mean(axis=0)
+    da, db = a[ok, :2] - ca, b[ok, :2] - cb
+    # The clockwise turn taking da to db: x' = x cos + y sin, y' = -x sin + y cos.
+    theta = math.atan2(
+        float(np.sum(da[:, 1] * db[:, 0] - da[:, 0] * db[:, 1])),
+        float(np.sum(da[:, 0] * db[:, 0] + da[:, 1] * db[:, 1])),
+    )
+    theta = min(max(theta, -max_turn_rad), max_turn_rad)
+    s, c = math.sin(theta), math.cos(theta)
+    x, y = a[:, 0] - ca[0], a[:, 1] - ca[1]
+    out[:, 0] = cb[0] + x * c + y * s
+    out[:, 1] = cb[1] - x * s + y * c
+    out[:, 2] = (a[:, 2] + theta) % (2 * math.pi)
+    return out
+
+
+def _relative(c: ResolveClosure) -> RelativePose:
+    return RelativePose(c.forward_m, c.starboard_m, c.yaw_rad)
