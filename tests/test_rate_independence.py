@@ -38,8 +38,9 @@ def _place(poses: Array) -> Array:
     return np.stack([poses[:, 0:1] + f * s + st * c, poses[:, 1:2] + f * c - st * s], axis=-1)
 
 
-def _placement_errors(result: Path, truth_path: Path) -> tuple[Array, Array]:
-    """Frame times and (n, 4, 2) placement error (estimated minus true) of FAN_POINTS."""
+def _placement_errors(result: Path, truth_path: Path) -> tuple[Array, Array, Array]:
+    """Frame times, (n, 4, 2) placement error (estimated minus true) of FAN_POINTS, and
+    their true places."""
     truth = load_truth(truth_path)
     by_time = {round(p["time"], 6): p for p in truth["pings"]}
     times, est, true = [], [], []
@@ -51,11 +52,14 @@ def _placement_errors(result: Path, truth_path: Path) -> tuple[Array, Array]:
                 (float(row["east"]), float(row["north"]), math.radians(float(row["heading_deg"])))
             )
             true.append((ping["east"], ping["north"], math.radians(ping["heading_deg"])))
-    return np.array(times), _place(np.array(est)) - _place(np.array(true))
+    placed = _place(np.array(true))
+    return np.array(times), _place(np.array(est)) - placed, placed
 
 
 @pytest.fixture(scope="module")
-def errors(tmp_path_factory: pytest.TempPathFactory) -> dict[float, tuple[Array, Array]]:
+def errors(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> dict[float, tuple[Array, Array, Array]]:
     out = {}
     for rate in (2.0, 10.0):
         folder = tmp_path_factory.mktemp(f"rate{rate:g}")
@@ -78,10 +82,10 @@ def errors(tmp_path_factory: pytest.TempPathFactory) -> dict[float, tuple[Array,
     strict=False,
 )
 def test_2hz_and_10hz_logs_of_one_survey_give_one_map(
-    errors: dict[float, tuple[Array, Array]],
+    errors: dict[float, tuple[Array, Array, Array]],
 ) -> None:
-    slow_t, slow = errors[2.0]
-    fast_t, fast = errors[10.0]
+    slow_t, slow, slow_true = errors[2.0]
+    fast_t, fast, _ = errors[10.0]
     assert slow_t.size > 100 and fast_t.size > 5 * 100
     inside = (slow_t >= fast_t[0]) & (slow_t <= fast_t[-1])
     fast_at_slow = np.stack(
@@ -93,9 +97,22 @@ def test_2hz_and_10hz_logs_of_one_survey_give_one_map(
     )
     apart = np.linalg.norm(slow[inside] - fast_at_slow, axis=-1)
     rms = float(np.sqrt(np.mean(apart**2)))
+    # The maps' shapes: the 2 Hz placements after the rigid motion (2-D Procrustes) that
+    # brings them nearest the 10 Hz ones. What is left is what the ping rate changes in
+    # the map itself; the motion, where each map sits on the GNSS.
+    a = (slow_true[inside] + slow[inside]).reshape(-1, 2)
+    b = (slow_true[inside] + fast_at_slow).reshape(-1, 2)
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    rotation = (u @ vt).T
+    shape = np.linalg.norm((a - ca) @ rotation.T + cb - b, axis=-1)
+    shape_rms = float(np.sqrt(np.mean(shape**2)))
+    shift = float(np.linalg.norm(cb - ca))
+    turn = math.degrees(math.atan2(rotation[1, 0], rotation[0, 0]))
     # Both maps sit on the same GNSS error, metres of it: what differs is only what the
     # ping rate changes.
     offset = float(np.sqrt(np.mean(np.sum(slow[inside] ** 2, axis=-1))))
-    print(f"2 Hz vs 10 Hz: RMS {rms:.4f} m, p90 {np.percentile(apart, 90):.4f} m; "
-          f"error against the truth {offset:.3f} m")  # fmt: skip
+    print(f"2 Hz vs 10 Hz: RMS {rms:.4f} m, p90 {np.percentile(apart, 90):.4f} m; shape "
+          f"{shape_rms:.4f} m after {shift:.3f} m and {turn:.3f} deg; error against the truth "
+          f"{offset:.3f} m")  # fmt: skip
     assert rms < 0.02, (rms, offset)
