@@ -9,8 +9,9 @@ import math
 import numpy as np
 
 from mapping.fmt import SonarGrid
+from mapping.frames import relative_pose
 from mapping.fusion import Fusion, FusionParams, PosePrior, diagonal_sqrt_info
-from mapping.live_resolve import LiveResolver, ResolveParams, align, pack
+from mapping.live_resolve import Bridge, LiveResolver, ResolveParams, align, pack
 from mapping.mosaic import SonarPose, TileGrid
 from mapping.posegraph import Edge
 from mapping.survey_graph import GraphParams
@@ -20,10 +21,25 @@ from tests.mapping.test_fusion import _shape_error, _survey
 GRID = SonarGrid((8, 8), 0.02, 0.16, -0.08)
 
 
-def _resolver(params: ResolveParams, rate_hz: float = 2.0, lanes: int = 3):
+def _resolver(
+    params: ResolveParams,
+    rate_hz: float = 2.0,
+    lanes: int = 3,
+    unregistered: range = range(0),
+    bridged: bool = True,
+):
     """A resolver fed the synthetic survey as the engine would feed it, every frame
-    drawn at ``initial`` (the GNSS bias and the compass's misalignment in it)."""
+    drawn at ``initial`` (the GNSS bias and the compass's misalignment in it). Frames
+    ``unregistered`` have no registration: the live filter's priors there drift at
+    0.3 m/s (dead reckoning in a GNSS outage), and the chain bridged them (``bridged``)
+    at the speed last registered, good to 6 cm/s."""
     times, truth, data, constraints, initial = _survey(rate_hz, lanes=lanes)
+    priors = initial.copy()
+    if len(unregistered):
+        start = unregistered[0]
+        drift = 0.3 * (times[unregistered] - times[start])
+        priors[unregistered, 0] += drift
+        priors[unregistered.stop :, 0] += drift[-1]
     resolver = LiveResolver(params, FusionParams(), GraphParams())
     for t, (x, y) in zip(data.gnss_times, data.gnss_xy, strict=True):
         resolver.add_gnss(float(t), float(x), float(y))
@@ -38,7 +54,19 @@ def _resolver(params: ResolveParams, rate_hz: float = 2.0, lanes: int = 3):
     for k, t in enumerate(times):
         c = constraints[k - 1] if k else None
         edge = Edge(k - 1, k, c.forward_m, c.starboard_m, c.yaw_rad) if c else None
-        resolver.add_frame(k, float(t), initial[k], edge, c.sqrt_info if c else None)
+        bridge = None
+        if k in unregistered:
+            edge = None
+            if bridged:
+                rel = relative_pose(truth[k - 1], truth[k])
+                span = float(t - times[k - 1])
+                bridge = Bridge(
+                    k - 1, rel.forward_m, rel.starboard_m, rel.yaw_rad,
+                    0.02 + 0.06 * span, math.radians(0.5 + 0.5 * span),
+                )  # fmt: skip
+        resolver.add_frame(
+            k, float(t), priors[k], edge, c.sqrt_info if c and edge else None, bridge
+        )
         image = np.full(GRID.shape, 0.5, np.float32)
         drawn = pack(k, float(t), image, image, image > 0, GRID, [], initial[k], initial[k])
         dropped += resolver.keep(drawn)
@@ -163,3 +191,21 @@ def test_alignment_turns_the_stretch_back_by_a_bounded_angle() -> None:
         np.testing.assert_allclose(back, expected, atol=1e-9)
         if turn_deg < 0.25:
             np.testing.assert_allclose(out, drawn, atol=1e-9)
+
+
+def test_frames_the_chain_bridged_are_bridged_as_it_did() -> None:
+    """40 s without registrations (a GNSS outage over a featureless patch): bridged as
+    the chain bridged them, the re-solved lanes keep their shape; bridged by the live
+    filter's drifting poses (what the survey-end pass does with its smoothed filter), they
+    would not."""
+    gap = range(60, 140)
+    shapes = {}
+    for bridged in (True, False):
+        _, truth, initial, resolver, _ = _resolver(
+            ResolveParams(), unregistered=gap, bridged=bridged
+        )
+        out = resolver.solve(list(initial))
+        assert out is not None
+        shapes[bridged] = _shape_error(out[1], truth)
+    assert shapes[True] < 0.1
+    assert shapes[False] > 2 * shapes[True]
