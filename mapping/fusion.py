@@ -291,7 +291,7 @@ def _bracket(
     return k.astype(np.int64), np.clip(w, 0.0, 1.0), usable
 
 
-def _compass_basis(psi: Array) -> tuple[Array, Array]:
+def compass_basis(psi: Array) -> tuple[Array, Array]:
     """f(psi) (m, 5) and df/dpsi (m, 5)."""
     s1, c1 = np.sin(psi), np.cos(psi)
     s2, c2 = np.sin(2 * psi), np.cos(2 * psi)
@@ -360,6 +360,11 @@ def prior_chi2(poses: Array, priors: Sequence[PosePrior]) -> Array:
         return np.zeros(0)
     b = _Builder()
     _prior_factors(b, poses, priors, np.ones(len(priors)))
+    return _squared_norms(b)
+
+
+def _squared_norms(b: _Builder) -> Array:
+    """Per 3-row factor of the builder's one block, its squared whitened residual."""
     r = b.residuals[0].reshape(-1, 3)
     return np.asarray((r * r).sum(axis=1), float)
 
@@ -370,8 +375,7 @@ def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Ar
         return np.zeros(0)
     b = _Builder()
     _relative_factors(b, poses, constraints, np.ones(len(constraints)))
-    r = b.residuals[0].reshape(-1, 3)
-    return np.asarray((r * r).sum(axis=1), float)
+    return _squared_norms(b)
 
 
 class Fusion:
@@ -506,7 +510,7 @@ class Fusion:
             if k.size:
                 k1 = k + 1
                 psi = poses[k, 2] + w * _wrap(poses[k1, 2] - poses[k, 2])
-                f, df = _compass_basis(psi)
+                f, df = compass_basis(psi)
                 spacing = (
                     float(np.median(np.diff(d.heading_times))) if d.heading_times.size > 1 else 1.0
                 )
@@ -642,9 +646,9 @@ class Fusion:
         self._prior_weights = np.ones(len(self.priors))
         iterations = 0
         for iterations in range(1, p.max_iterations + 1):  # noqa: B007
+            # Cauchy: w = 1 / (1 + e^2 / c^2), e the Mahalanobis residual.
             if robust.any():
                 sq = relative_chi2(self.frame_poses(x), constraints)
-                # Cauchy: w = 1 / (1 + e^2 / c^2), e the Mahalanobis residual.
                 weights = np.where(robust, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0)
             if robust_priors.any():
                 sq = prior_chi2(self.frame_poses(x), self.priors)

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from mapping.closures import world_rotation
 from mapping.fmt import RelativePose, SonarGrid
 from mapping.frames import compose
 from mapping.fusion import (
@@ -54,12 +55,13 @@ from mapping.fusion import (
     FusionParams,
     PosePrior,
     RelativeConstraint,
+    compass_basis,
     diagonal_sqrt_info,
     sqrt_information,
 )
 from mapping.mosaic import TileKey
 from mapping.posegraph import Edge
-from mapping.survey_graph import GraphParams, odometry_constraint
+from mapping.survey_graph import GraphParams, gyro_at_frames, odometry_constraint
 
 Array = npt.NDArray[np.float64]
 
@@ -85,11 +87,6 @@ class ResolveParams:
     most, left neighbours drawn apart: quadrats seed 6 at 2 Hz, live lanes 8.0 -> 11.9
     cm, quadrat spacing 2.1 -> 4.4 cm). So the re-solves space out as the stretch grows,
     and the live engine keeps up at any ping rate."""
-    carry_turn: bool = False
-    """The chain after the re-solved stretch turns with its last frame (else it keeps its
-    own heading and only moves with it). The last frame is the solution's least certain:
-    turned with it, the chain on quadrats seed 6 at 2 Hz took a 2.6 degree turn at the
-    last re-solve and drew the last lane 0.5 m off (live lanes 25 cm; 14 without)."""
     max_turn_deg: float = 0.25
     """The re-solved stretch is first moved, and turned by up to this, to fit where it is
     drawn (``align``): 4 cm at 10 m."""
@@ -117,6 +114,7 @@ class Drawn:
 
     @property
     def nbytes(self) -> int:
+        # The arrays, and about 200 bytes of the object, its poses and tile list.
         return int(self.image.nbytes + self.score.nbytes + self.mask.nbytes) + 200
 
     def layers(
@@ -179,18 +177,6 @@ class ResolveClosure:
     covariance: Array
 
 
-@dataclass
-class ResolveStats:
-    solves: int = 0
-    nodes: int = 0
-    """Nodes of the last solve."""
-    redrawn: int = 0
-    archived_bytes: int = 0
-    released: int = 0
-    closures: int = 0
-    seconds: float = 0.0
-
-
 class LiveResolver:
     """Keeps what a re-solve needs: the navigation measurements (small, as they come), the
     accepted frames' priors and registrations, the drawn frames' images (bounded), the
@@ -218,11 +204,10 @@ class LiveResolver:
         self.drawn: OrderedDict[int, Drawn] = OrderedDict()
         self.bytes = 0
         self.closures: list[ResolveClosure] = []
-        self.stats = ResolveStats()
         self.compass: Array | None = None
         """The compass error coefficients of the last solve (1, sin, cos, sin 2, cos 2)."""
-        self.last_solve_time = -math.inf
         self.next_solve_time = -math.inf
+        """Survey time from which the next re-solve may run."""
 
     # -- what comes in -----------------------------------------------------------------
     def add_gnss(self, time: float, x: float, y: float) -> None:
@@ -284,21 +269,15 @@ class LiveResolver:
             _, old = self.drawn.popitem(last=False)
             self.bytes -= old.nbytes
             out.append(old)
-        self.stats.archived_bytes = self.bytes
-        self.stats.released += len(out)
         return out
 
     # -- the solve -----------------------------------------------------------------------
     def due(self, now: float) -> bool:
-        return (
-            self.params.enabled
-            and len(self.drawn) >= 2
-            and now - self.last_solve_time >= self.params.every_s
-            and now >= self.next_solve_time
-        )
+        return self.params.enabled and len(self.drawn) >= 2 and now >= self.next_solve_time
 
     def redrawn(self, now: float, count: int) -> None:
-        """A re-solve at ``now`` redrew ``count`` frames: when the next may come."""
+        """A re-solve at ``now`` redrew ``count`` frames (none when it had nothing to
+        solve): when the next may come."""
         p = self.params
         self.next_solve_time = now + max(p.every_s, count / max(p.redraw_rate, 1e-9))
 
@@ -351,7 +330,6 @@ class LiveResolver:
                     )
                 )  # fmt: skip
         hold_cov = np.diag([p.hold_sigma_m**2] * 2 + [math.radians(p.hold_sigma_deg) ** 2])
-        used = 0
         for c in self.closures:
             if c.j not in position:
                 continue
@@ -362,44 +340,29 @@ class LiveResolver:
                         sqrt_information(c.covariance), robust=True, kind="closure",
                     )
                 )  # fmt: skip
-                used += 1
             elif c.i < nodes[0]:
                 anchor = np.asarray(drawn_poses[c.i], float)
                 if not np.all(np.isfinite(anchor)):
                     continue
-                implied = compose(anchor, _relative(c))
-                s, co = math.sin(anchor[2]), math.cos(anchor[2])
-                rot = np.array([[s, co, 0.0], [co, -s, 0.0], [0.0, 0.0, 1.0]])
+                implied = compose(anchor, RelativePose(c.forward_m, c.starboard_m, c.yaw_rad))
+                rot = world_rotation(float(anchor[2]))
                 cov = rot @ c.covariance @ rot.T + hold_cov
                 priors.append(
                     PosePrior(position[c.j], implied, sqrt_information(cov), True, "closure")
                 )
-                used += 1
         data = self._data(times)
         initial = np.array([drawn_poses[k] for k in nodes], float)
         fusion = Fusion(times, data, self.fusion, priors=priors)
         solution, _ = fusion.solve(initial, constraints)
         self.compass = solution.compass_coefficients.copy()
-        self.stats.solves += 1
-        self.stats.nodes = len(nodes)
-        self.stats.closures = used
         return nodes, solution.poses
 
     def compass_error(self, heading: float) -> float:
         """What the compass adds to a true grid heading, by the last solve (radians)."""
-        c = self.compass
-        if c is None:
+        if self.compass is None:
             return 0.0
-        f = np.array(
-            [
-                1.0,
-                math.sin(heading),
-                math.cos(heading),
-                math.sin(2 * heading),
-                math.cos(2 * heading),
-            ]
-        )
-        return float(f @ c)
+        f, _ = compass_basis(np.array([heading]))
+        return float(f[0] @ self.compass)
 
     def _data(self, times: Array) -> FusionData:
         t0, t1 = float(times[0]) - 5.0, float(times[-1]) + 5.0
@@ -410,20 +373,12 @@ class LiveResolver:
         )
         ht = np.frombuffer(self._head_t, float)
         h_in = (ht >= t0) & (ht <= t1)
-        n = times.size
-        yaw = np.full(n, np.nan)
-        gap = np.zeros(n, bool)
-        it = np.frombuffer(self._imu_t, float)
-        if it.size >= 2:
-            integral = np.frombuffer(self._imu_yaw, float)
-            query = times - self.graph.sonar_latency_s
-            inside = (query >= it[0]) & (query <= it[-1])
-            yaw[inside] = np.interp(query[inside], it, integral)
-            gaps = np.flatnonzero(np.diff(it) > 0.5)
-            if gaps.size:
-                prev = np.concatenate([[query[0]], query[:-1]])
-                for a, b in zip(it[gaps], it[gaps + 1], strict=True):
-                    gap |= (prev < b) & (query > a)
+        yaw, gap = gyro_at_frames(
+            np.frombuffer(self._imu_t, float),
+            np.frombuffer(self._imu_yaw, float),
+            times,
+            self.graph.sonar_latency_s,
+        )
         return FusionData(
             gt[g_in].copy(),
             gnss_xy,
@@ -490,7 +445,3 @@ def align(solved: Array, drawn: Array, max_turn_rad: float) -> Array:
     out[:, 1] = cb[1] - x * s + y * c
     out[:, 2] = (a[:, 2] + theta) % (2 * math.pi)
     return out
-
-
-def _relative(c: ResolveClosure) -> RelativePose:
-    return RelativePose(c.forward_m, c.starboard_m, c.yaw_rad)

@@ -77,24 +77,33 @@ def fusion_data(inputs: NavInputs, frame_times: Array, latency_s: float) -> Fusi
     gnss_xy = np.array([(f.x, f.y) for f in inputs.positions], float).reshape(-1, 2)
     head_t = np.array([h.time for h in inputs.headings], float)
     head = np.array([h.heading for h in inputs.headings], float)
+    t = np.array([s.time for s in inputs.imu], float)
+    rate = np.array([s.yaw_rate_rps for s in inputs.imu], float)
+    integral = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+    yaw, gap = gyro_at_frames(t, integral, frame_times, latency_s)
+    return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+
+
+def gyro_at_frames(
+    imu_times: Array, yaw_integral: Array, frame_times: Array, latency_s: float
+) -> tuple[Array, npt.NDArray[np.bool_]]:
+    """The integrated yaw rate at each frame's acquisition time (NaN outside the IMU's
+    span), and where an IMU gap lies between a frame and the one before (no gyro factor
+    across it)."""
     n = frame_times.size
     yaw = np.full(n, np.nan)
     gap = np.zeros(n, bool)
-    if len(inputs.imu) >= 2 and n:
-        t = np.array([s.time for s in inputs.imu], float)
-        rate = np.array([s.yaw_rate_rps for s in inputs.imu], float)
-        integral = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+    if imu_times.size >= 2 and n:
         query = frame_times - latency_s
-        inside = (query >= t[0]) & (query <= t[-1])
-        yaw[inside] = np.interp(query[inside], t, integral)
-        # An IMU gap between two frames: no gyro factor across it.
-        gaps = np.flatnonzero(np.diff(t) > 0.5)
+        inside = (query >= imu_times[0]) & (query <= imu_times[-1])
+        yaw[inside] = np.interp(query[inside], imu_times, yaw_integral)
+        gaps = np.flatnonzero(np.diff(imu_times) > 0.5)
         if gaps.size:
-            gap_start, gap_end = t[gaps], t[gaps + 1]
+            gap_start, gap_end = imu_times[gaps], imu_times[gaps + 1]
             prev = np.concatenate([[query[0]], query[:-1]])
             for a, b in zip(gap_start, gap_end, strict=True):
                 gap |= (prev < b) & (query > a)
-    return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+    return yaw, gap
 
 
 def registration_sqrt_info(
