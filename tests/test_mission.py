@@ -191,6 +191,9 @@ def url_of(port: int) -> str:
 
 
 def wait_for(condition: Any, timeout_s: float = 10.0) -> None:
+    """Until ``condition()`` holds (bounded). The fake autopilot's MAVSDK hands its
+    callbacks (arm, mode) over on its own thread: a command answered to the client may be
+    recorded a moment later, later still on a loaded machine."""
     deadline = time.monotonic() + timeout_s
     while not condition():
         assert time.monotonic() < deadline, "the condition never came true"
@@ -343,6 +346,7 @@ def test_start_uploads_checks_arms_and_starts(
     assert all(item.z == 0.0 and item.autocontinue for item in received)
     assert started.items_sent == len(autopilot.uploads[0])
     # Armed, then AUTO (MAVSDK's PX4-style mode for this generic autopilot), then started.
+    wait_for(lambda: autopilot.arm_requests and autopilot.mode_requests)
     assert autopilot.arm_requests == [("SUCCESS", True)]
     assert ("SUCCESS", "MISSION") in autopilot.mode_requests
     wait_for(lambda: autopilot.current == 0)
@@ -380,11 +384,14 @@ def test_pause_resume_abort_send_hold_auto_and_rtl(
     # that must come back as one clear line.
     with pytest.raises(SeamapError, match=r"holding .* refused it \(DENIED\)"):
         asyncio.run(mission.pause_survey(url_of(port), timeout_s=20))
+    wait_for(lambda: len(autopilot.mode_requests) >= 1)
     assert autopilot.mode_requests[-1][1] == "HOLD"
     asyncio.run(mission.resume_survey(url_of(port), timeout_s=20))
+    wait_for(lambda: len(autopilot.mode_requests) >= 2)
     assert autopilot.mode_requests[-1] == ("SUCCESS", "MISSION")
     capfd.readouterr()
     assert main(["survey", "abort", "--connect", url_of(port)]) == 0
+    wait_for(lambda: len(autopilot.mode_requests) >= 3)
     assert autopilot.mode_requests[-1] == ("SUCCESS", "RETURN_TO_LAUNCH")
     assert capfd.readouterr().out == "returning to launch (RTL)\n"
 
@@ -443,6 +450,7 @@ def test_a_mission_that_will_not_start_is_disarmed_again(tmp_path: Path, port: i
         plan = mission.load_plan(write_plan(tmp_path))
         with pytest.raises(SeamapError, match=r"starting .* refused it .*; disarmed again$"):
             asyncio.run(mission.start_survey(plan, url_of(port), timeout_s=10))
+        wait_for(lambda: len(peer.arm_requests) >= 2 and peer.mode_requests, timeout_s=5.0)
         assert peer.arm_requests == [("SUCCESS", True), ("SUCCESS", False)]
         assert [mode for _, mode in peer.mode_requests] == ["MISSION"]
     finally:
@@ -535,6 +543,7 @@ def test_survey_start_on_the_command_line(
     assert out[0].startswith("mission started: 5 items") and "armed, AUTO" in out[0]
     assert out[1:] == [f"survey X recording on {VEHICLE}"]
     assert fake.requests == [{"action": "start"}]
+    wait_for(lambda: autopilot.uploads and autopilot.mode_requests)
     assert len(autopilot.uploads) == 1 and ("SUCCESS", "MISSION") in autopilot.mode_requests
 
 
@@ -552,6 +561,7 @@ def test_a_silent_daemon_is_reported_and_the_mission_runs_on(
     assert len(err) == 1 and "the mission runs, but no survey was opened" in err[0]
     assert f"tcp/127.0.0.1:{nobody}" in err[0]
     # Not undone: no hold, no return.
+    wait_for(lambda: autopilot.mode_requests)
     assert [mode for _, mode in autopilot.mode_requests] == ["MISSION"]
 
 
