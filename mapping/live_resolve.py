@@ -42,6 +42,7 @@ import math
 from array import array
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -81,15 +82,21 @@ class ResolveParams:
     again: one and a half mosaic pixels."""
     redraw_rate: float = 20.0
     """Redraws per second of survey, on average: after a re-solve that redrew R frames
-    the next waits R / this (at least ``every_s``). A redraw costs about a blend (12 ms
-    here); the whole stretch turns by a degree when the compass's misalignment is
-    learned, and every frame of it is redrawn (redrawing only some, those that moved
-    most, left neighbours drawn apart: quadrats seed 6 at 2 Hz, live lanes 8.0 -> 11.9
-    cm, quadrat spacing 2.1 -> 4.4 cm). So the re-solves space out as the stretch grows,
-    and the live engine keeps up at any ping rate."""
-    max_turn_deg: float = 0.25
+    the next waits R / this (at least ``every_s``). A redraw costs about a blend (7 ms
+    here); every frame that moved is redrawn (redrawing only some, those that moved most,
+    left neighbours drawn apart: quadrats seed 6 at 2 Hz, live lanes 8.0 -> 11.9 cm,
+    quadrat spacing 2.1 -> 4.4 cm), so the re-solves space out as the stretch grows and
+    the live engine keeps up at any ping rate. Measured with a budget of one redraw per
+    new frame instead (the same cost per frame at any rate): live lanes 14.3 / 13.7 /
+    10.4 cm on quadrats seed 6 at 2 Hz, current seed 2, seed 2, against 12.7 / 6.6 / 7.1
+    with this budget, and quadrat spacing 2 -> 11 cm on two of them."""
+    max_turn_deg: float = 1.0
     """The re-solved stretch is first moved, and turned by up to this, to fit where it is
-    drawn (``align``): 4 cm at 10 m."""
+    drawn (``align``), and the live chain is drawn in that frame (``DrawnFrame``). A
+    stretch's orientation from the GNSS over it moves by half a degree to a degree from
+    one re-solve to the next (a metre of wander over 50 m). On ten surveys of the matrix,
+    live lanes 7.6 cm at the median with 1 degree, 10.5 with 0.25 (2.5 m GNSS: 6.4
+    against 14.6 cm; a 0.15 m/s current: 14.5 against 13.5)."""
     hold_sigma_m: float = 0.01
     """How firmly a frame that can no longer move holds the map (and a closure's
     keyframe outside the stretch): where it is drawn is within a pixel of where its
@@ -117,15 +124,16 @@ class Drawn:
         # The arrays, and about 200 bytes of the object, its poses and tile list.
         return int(self.image.nbytes + self.score.nbytes + self.mask.nbytes) + 200
 
-    def layers(
-        self,
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
-        """Image, score and mask as the tile store takes them."""
+    def layers(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+        """The (rows, cols, 3) stack of image, score and mask the tile store warps, and
+        the mask."""
         size = self.grid.shape[0] * self.grid.shape[1]
         mask = np.unpackbits(self.mask, count=size).reshape(self.grid.shape).astype(bool)
-        image = self.image.astype(np.float32) * np.float32(1 / 255)
-        score = self.score.astype(np.float32) * np.float32(1 / 65535)
-        return image, score, mask
+        layers = np.empty((*self.grid.shape, 3), np.float32)
+        np.multiply(self.image, np.float32(1 / 255), out=layers[..., 0])
+        np.multiply(self.score, np.float32(1 / 65535), out=layers[..., 1])
+        layers[..., 2] = mask
+        return layers, mask
 
 
 def pack(
@@ -281,7 +289,7 @@ class LiveResolver:
         p = self.params
         self.next_solve_time = now + max(p.every_s, count / max(p.redraw_rate, 1e-9))
 
-    def solve(self, drawn_poses: dict[int, Array] | list[Array]) -> tuple[list[int], Array] | None:
+    def solve(self, drawn_poses: PoseLookup) -> tuple[list[int], Array] | None:
         """Place the kept frames again. ``drawn_poses[k]``: where frame k is drawn now
         (vehicle pose). Returns the nodes (frame indices) and their solved poses, or
         None when there is nothing to solve."""
@@ -415,22 +423,57 @@ class LiveResolver:
                     del other[:drop]
 
 
-def align(solved: Array, drawn: Array, max_turn_rad: float) -> Array:
-    """``solved`` (n, 3) moved by the translation, and the turn up to ``max_turn_rad``,
-    that bring its positions nearest (least squares, 2-D Procrustes) to ``drawn``.
+class PoseLookup(Protocol):
+    def __getitem__(self, k: int, /) -> Array: ...
+
+
+@dataclass(frozen=True, slots=True)
+class DrawnFrame:
+    """Where the live map is drawn against the GNSS's frame: ``x_drawn = to + R(turn) (x
+    - origin)``, R the clockwise turn (headings gain ``turn``). The identity until a
+    re-solve holds the drawn map's place and orientation against a solution that moved."""
+
+    turn: float = 0.0
+    origin: tuple[float, float] = (0.0, 0.0)
+    to: tuple[float, float] = (0.0, 0.0)
+
+    def point(self, x: float, y: float) -> tuple[float, float]:
+        s, c = math.sin(self.turn), math.cos(self.turn)
+        dx, dy = x - self.origin[0], y - self.origin[1]
+        return self.to[0] + dx * c + dy * s, self.to[1] - dx * s + dy * c
+
+    def poses(self, poses: Array) -> Array:
+        """(n, 3) poses of the GNSS's frame in the drawn one."""
+        a = np.asarray(poses, float)
+        out = a.copy()
+        s, c = math.sin(self.turn), math.cos(self.turn)
+        dx, dy = a[:, 0] - self.origin[0], a[:, 1] - self.origin[1]
+        out[:, 0] = self.to[0] + dx * c + dy * s
+        out[:, 1] = self.to[1] - dx * s + dy * c
+        out[:, 2] = (a[:, 2] + self.turn) % (2 * math.pi)
+        return out
+
+    def inverse(self) -> DrawnFrame:
+        # x = origin + R(-turn) (x_drawn - to)
+        return DrawnFrame(-self.turn, self.to, self.origin)
+
+
+def align(solved: Array, drawn: Array, max_turn_rad: float) -> DrawnFrame:
+    """The move of ``solved`` (n, 3), and its turn up to ``max_turn_rad``, that bring its
+    positions nearest (least squares, 2-D Procrustes) to ``drawn``.
 
     A new fix moves a whole stretch by a centimetre or two and turns it by a tenth of a
-    degree: the drawn map should change where its shape does, not chase that (each
-    chase is a redraw of every frame). The turn is bounded: the map's orientation is the
-    GNSS's over the whole survey, and a map turned to fit what was drawn leaves the
-    chain, which follows the GNSS, further off the further it goes (measured with the
-    turn unbounded: quadrats seed 6 at 2 Hz, live lanes 11 -> 20 cm)."""
+    degree or more (a stretch's orientation is the GNSS's over it: a metre of wander over
+    50 m is a degree): the drawn map should change where its shape does, not chase that
+    (each chase is a redraw of every frame). The live chain is then drawn in the same
+    frame (``DrawnFrame``: the fixes and the compass it is tied to are taken into it),
+    so that new lanes meet the drawn ones. The turn is bounded: the map's orientation is
+    the GNSS's over the whole survey."""
     a = np.asarray(solved, float)
     b = np.asarray(drawn, float)
     ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
-    out = a.copy()
     if not ok.any():
-        return out
+        return DrawnFrame()
     ca, cb = a[ok, :2].mean(axis=0), b[ok, :2].mean(axis=0)
     da, db = a[ok, :2] - ca, b[ok, :2] - cb
     # The clockwise turn taking da to db: x' = x cos + y sin, y' = -x sin + y cos.
@@ -439,9 +482,4 @@ def align(solved: Array, drawn: Array, max_turn_rad: float) -> Array:
         float(np.sum(da[:, 0] * db[:, 0] + da[:, 1] * db[:, 1])),
     )
     theta = min(max(theta, -max_turn_rad), max_turn_rad)
-    s, c = math.sin(theta), math.cos(theta)
-    x, y = a[:, 0] - ca[0], a[:, 1] - ca[1]
-    out[:, 0] = cb[0] + x * c + y * s
-    out[:, 1] = cb[1] - x * s + y * c
-    out[:, 2] = (a[:, 2] + theta) % (2 * math.pi)
-    return out
+    return DrawnFrame(theta, (float(ca[0]), float(ca[1])), (float(cb[0]), float(cb[1])))

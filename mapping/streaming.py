@@ -45,6 +45,8 @@ from mapping.live_anchor import AnchorParams, LiveAnchor
 from mapping.live_closures import LiveClosureParams, LiveClosures
 from mapping.live_resolve import (
     Bridge,
+    Drawn,
+    DrawnFrame,
     LiveResolver,
     ResolveClosure,
     ResolveParams,
@@ -181,14 +183,24 @@ class StreamStats:
         return now
 
 
+class _PosesIn:
+    """Drawn poses looked up one at a time and taken into another frame."""
+
+    def __init__(self, frame: DrawnFrame, poses: list[Array]) -> None:
+        self.frame = frame
+        self.drawn = poses
+
+    def __getitem__(self, k: int) -> Array:
+        return self.frame.poses(np.asarray(self.drawn[k], float)[None, :])[0]
+
+
 @dataclass
 class _Live:
     """A frame still in the window: what re-blending it needs."""
 
     index: int
     time: float
-    image: npt.NDArray[np.float32]
-    score: npt.NDArray[np.float32]
+    layers: npt.NDArray[np.float32]  # (rows, cols, 3): image, score, mask
     mask: npt.NDArray[np.bool_]
     grid: SonarGrid
     tiles: list[TileKey]
@@ -265,6 +277,13 @@ class StreamingEngine:
         self.closures: LiveClosures | None = None  # once the sonar's geometry is known
         single = p.single_stage
         self.resolver = LiveResolver(self.params.resolve, single.fusion, single.graph)
+        self.drawn_frame = DrawnFrame()
+        self._to_redraw: dict[int, Array] = {}
+        """Frames the last re-solve moved and that are still to be drawn again."""
+        self._redraw_credit = 0.0
+        self._redraw_time = 0.0
+        self._redraw_recent: deque[list[TileKey]] = deque(maxlen=10)
+        """The live map's frame against the GNSS's (``mapping.live_resolve.align``)."""
         # The raw navigation for the survey-end pass: IMU rows compactly in arrays.
         self._imu = _ImuRecord()
         self._fixes: list[GnssFix] = []
@@ -305,6 +324,7 @@ class StreamingEngine:
         make every remaining pose final."""
         self._release(math.inf)
         self._solve_window(final=True)
+        self._redraw(self._released, everything=True)
         self._render(force=True)
 
     def _release(self, upto: float) -> None:
@@ -459,42 +479,34 @@ class StreamingEngine:
         assert grid is not None
         score = self.scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
         sonar = self.mount.sonar_pose(pose)
-        touched = self._insert(
-            index, sonar_frame.image, score, sonar_frame.mask, grid, sonar, ping.time
-        )
-        self._live[index] = _Live(
-            index, ping.time, sonar_frame.image, score, sonar_frame.mask, grid, touched, sonar
-        )
+        layers = np.dstack([sonar_frame.image, score, sonar_frame.mask.astype(np.float32)])
+        touched = self._insert(index, layers, sonar_frame.mask, grid, sonar, ping.time)
+        self._live[index] = _Live(index, ping.time, layers, sonar_frame.mask, grid, touched, sonar)
         stats.time("blending", started)
         self._emit_pose(index, final=False)
         self._since_solve += 1
         if self._since_solve >= self.params.solve_every:
             self._solve_window(final=False)
-        if self.resolver.due(ping.time):
+        self._redraw(ping.time)
+        if not self._to_redraw and self.resolver.due(ping.time):
             self._resolve(ping.time)
         self._render(force=False)
 
     def _insert(
         self,
         index: int,
-        image: npt.NDArray[np.float32],
-        score: npt.NDArray[np.float32],
+        layers: npt.NDArray[np.float32],
         mask: npt.NDArray[np.bool_],
         grid: SonarGrid,
         sonar: Array,
         time: float,
     ) -> list[TileKey]:
+        """Offer a frame (its stack of image, score and mask) to the tiles at sonar pose
+        ``sonar`` (local)."""
         assert self.frame is not None
         east, north = self.frame.to_utm(sonar[0], sonar[1])
-        touched = self.tiles.insert(
-            index,
-            image,
-            score,
-            mask,
-            grid,
-            SonarPose(float(east), float(north), float(sonar[2])),
-            time,
-        )
+        pose = SonarPose(float(east), float(north), float(sonar[2]))
+        touched = self.tiles.insert_layers(index, layers, mask, grid, pose, time)
         for key in touched:
             self._pending_frames.setdefault(key, []).append(index)
         return touched
@@ -577,12 +589,14 @@ class StreamingEngine:
                 t_fix, x, y = self._pending_fixes.popleft()
                 if t_fix < t0 - 1.0:
                     continue
+                x, y = self.drawn_frame.point(x, y)
                 w = min(max((t_fix - t0) / max(time - t0, 1e-6), 0.0), 1.0)
                 at = (1 - w) * self._chain[last] + w * self._chain[index]
                 self.anchor.update_position(t_fix, (x - float(at[0]), y - float(at[1])))
             # The filter's heading carries the compass's error; the last re-solve
             # estimated it (misalignment and deviation).
             heading = float(prior[2]) - self.resolver.compass_error(float(prior[2]))
+            heading += self.drawn_frame.turn
             self.anchor.update_heading(
                 time, math.remainder(heading - self._chain_heading[index], 2 * math.pi)
             )
@@ -695,7 +709,7 @@ class StreamingEngine:
                         pose,
                         drawn_with,
                         float(self.anchor.correction_covariance()[2, 2]),
-                        live.image,
+                        np.ascontiguousarray(live.layers[..., 0]),
                         live.grid,
                     )
             self._emit_pose(k, final=True)
@@ -717,10 +731,13 @@ class StreamingEngine:
             return
         chain = np.array([*self._chain[k], self._chain_heading[k]])
         drawn = pack(
-            k, live.time, live.image, live.score, live.mask, live.grid, live.tiles,
-            live.blended_pose, chain,
+            k, live.time, live.layers[..., 0], live.layers[..., 1], live.mask, live.grid,
+            live.tiles, live.blended_pose, chain,
         )  # fmt: skip
         for old in self.resolver.keep(drawn):
+            pose = self._to_redraw.pop(old.index, None)
+            if pose is not None:
+                self._redraw_one(old, pose)
             self.tiles.settle(old.index, old.tiles)
 
     def _take_closures(self) -> None:
@@ -742,21 +759,25 @@ class StreamingEngine:
         moved, and carry the chain on from the new map."""
         started = clock.perf_counter()
         resolver = self.resolver
-        out = resolver.solve(self.poses)
+        old = self.drawn_frame
+        back = old.inverse()
+        # The solution is in the GNSS's frame: what holds it (the frame before the
+        # stretch, keyframes outside it) is taken there from where it is drawn.
+        out = resolver.solve(_PosesIn(back, self.poses))
         if out is None:
             resolver.redrawn(now, 0)
             return
-        nodes, solved = out
+        nodes, in_gnss = out
         self.stats.resolves += 1
         rp = self.params.resolve
         if nodes[0] in resolver.drawn:
             # Nothing holds the stretch (no frame before it is fixed): keep the drawn
-            # map's georeferencing and change only its shape.
+            # map's place and (within a bound) its orientation; change its shape.
             drawn_poses = np.array([self.poses[k] for k in nodes])
-            aligned = align(solved, drawn_poses, math.radians(rp.max_turn_deg))
+            new = align(in_gnss, drawn_poses, math.radians(rp.max_turn_deg))
         else:
-            aligned = solved
-        solved = aligned
+            new = old
+        solved = new.poses(in_gnss)
         last = nodes[-1]
         was_last = self.poses[last].copy()
         moved_nodes: list[int] = []
@@ -772,23 +793,14 @@ class StreamingEngine:
         # Every frame that moved is redrawn: redrawing only those that moved most (at
         # most two or four per new frame) left neighbours drawn apart (quadrats seed 6 at
         # 2 Hz: live lanes 8.0 -> 11.9 / 10.4 cm, quadrat spacing 2.1 -> 4.4 / 6.5 cm).
-        recent: deque[list[TileKey]] = deque(maxlen=10)
+        # Its pose and its keyframe move now; it is drawn again as the next frames come
+        # (``_redraw``), at the re-solve's redraw rate, so that no frame waits for a
+        # stretch's worth of redraws (seconds: the daemon would skip frames).
         for m in moved_nodes:
             k, pose = nodes[m], solved[m]
             drawn = resolver.drawn[k]
-            sonar = self.mount.sonar_pose(pose)
-            self.tiles.remove(k, drawn.tiles)
-            image, score, mask = drawn.layers()
-            drawn.tiles = self._insert(k, image, score, mask, drawn.grid, sonar, drawn.time)
-            drawn.blended_sonar = sonar
             self.poses[k] = np.array(pose, float)
-            self.stats.frames_redrawn += 1
-            recent.append(drawn.tiles)
-            if len(self.tiles.active) > self.params.resolve_tiles_in_memory:
-                # Tiles of a stretch the boat has left were loaded to be redrawn: they
-                # leave memory again as the redraw moves on (memory follows the area),
-                # but not those the last few redraws used (the next ones use them too).
-                self._evict(now, {key for tiles in recent for key in tiles})
+            self._to_redraw[k] = self.poses[k]
             self._emit_pose(k, final=True)
             if self.closures is not None:
                 correction = np.array(
@@ -798,7 +810,9 @@ class StreamingEngine:
                         math.remainder(float(pose[2]) - drawn.chain[2], 2 * math.pi),
                     ]
                 )
-                self.closures.store.move(k, pose, sonar, correction)
+                self.closures.store.move(k, pose, self.mount.sonar_pose(pose), correction)
+        self._redraw_credit = 0.0
+        self._redraw_time = now
         resolver.redrawn(now, len(moved_nodes))
         if self.closures is not None:
             self.closures.rebase()
@@ -816,10 +830,54 @@ class StreamingEngine:
             # What the GNSS sees of the chain stays: the fixes since the last node were
             # taken against it, and the solution's bias is not known beyond that node
             # (there it decays towards zero). Taking the solution's bias and its
-            # covariance instead made quadrats seed 6 at 2 Hz 19 -> 42 cm live.
-            self.anchor.x[2] -= move_e
-            self.anchor.x[3] -= move_n
+            # covariance instead made quadrats seed 6 at 2 Hz 19 -> 42 cm live. The
+            # fixes are taken into the new drawn frame: where the boat is, they move by
+            # what the frame moved there.
+            q = in_gnss[-1]
+            e0, n0 = old.point(float(q[0]), float(q[1]))
+            e1, n1 = new.point(float(q[0]), float(q[1]))
+            self.anchor.x[2] += (e1 - e0) - move_e
+            self.anchor.x[3] += (n1 - n0) - move_n
+        self.drawn_frame = new
         self.stats.time("resolve", started)
+
+    def _redraw(self, now: float, everything: bool = False) -> None:
+        """Draw again frames a re-solve moved, at ``resolve.redraw_rate`` a second of
+        survey time (all of them with ``everything``), the newest first (next to where
+        the chain goes on)."""
+        if not self._to_redraw:
+            return
+        started = clock.perf_counter()
+        rate = self.params.resolve.redraw_rate
+        self._redraw_credit += rate * max(now - self._redraw_time, 0.0)
+        self._redraw_time = now
+        recent = self._redraw_recent
+        while self._to_redraw and (everything or self._redraw_credit >= 1.0):
+            k, pose = self._to_redraw.popitem()
+            self._redraw_credit -= 1.0
+            drawn = self.resolver.drawn.get(k)
+            if drawn is None:
+                continue
+            self._redraw_one(drawn, pose)
+            recent.append(drawn.tiles)
+            if len(self.tiles.active) > self.params.resolve_tiles_in_memory:
+                # Tiles of a stretch the boat has left were loaded to be redrawn: they
+                # leave memory again as the redraw moves on (memory follows the area),
+                # but not those the last few redraws used (the next ones use them too).
+                self._evict(now)
+        if not self._to_redraw:
+            self._redraw_credit = 0.0
+            recent.clear()
+        self.stats.time("resolve", started)
+
+    def _redraw_one(self, drawn: Drawn, pose: Array) -> None:
+        k = drawn.index
+        sonar = self.mount.sonar_pose(pose)
+        self.tiles.remove(k, drawn.tiles)
+        layers, mask = drawn.layers()
+        drawn.tiles = self._insert(k, layers, mask, drawn.grid, sonar, drawn.time)
+        drawn.blended_sonar = sonar
+        self.stats.frames_redrawn += 1
 
     def _reblend_if_moved(self, k: int, threshold: float) -> None:
         live = self._live[k]
@@ -830,7 +888,7 @@ class StreamingEngine:
         if moved <= threshold:
             return
         self.tiles.remove(k, live.tiles)
-        live.tiles = self._insert(k, live.image, live.score, live.mask, live.grid, sonar, live.time)
+        live.tiles = self._insert(k, live.layers, live.mask, live.grid, sonar, live.time)
         live.blended_pose = sonar
         self.stats.frames_reblended += 1
         self._emit_pose(k, final=False)
@@ -864,10 +922,10 @@ class StreamingEngine:
         self._evict(now)
         self.stats.time("render", started)
 
-    def _evict(self, now: float, also_keep: set[TileKey] | None = None) -> None:
+    def _evict(self, now: float) -> None:
         keep = {key for live in self._live.values() for key in live.tiles}
-        if also_keep:
-            keep |= also_keep
+        # Tiles the last redraws loaded stay while redraws go on (the next ones use them).
+        keep.update(key for tiles in self._redraw_recent for key in tiles)
         for image in self.tiles.evict_idle(now, keep):
             self._publish(image)
 

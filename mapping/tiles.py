@@ -47,15 +47,21 @@ _LOWEST_BIT[1:] = np.log2(np.arange(1, 1 << 16) & -np.arange(1, 1 << 16)).astype
 
 
 def _first_weakest(
-    candidates: npt.NDArray[np.uint16], weakest: npt.NDArray[np.uint16]
+    planes: npt.NDArray[np.uint16], pixels: npt.NDArray[np.intp], weakest: npt.NDArray[np.uint16]
 ) -> npt.NDArray[np.intp]:
-    """Index of the first of N slots (N, M) equal to ``weakest`` (M,), for each column."""
-    n = candidates.shape[0]
+    """For each of ``pixels`` (flat indices into a plane of ``planes``, (N, P)), the
+    first of the N slots whose score equals ``weakest``.
+
+    Slot by slot, gathered with ``take`` (contiguous), the slots holding it as bits and
+    the lowest bit from a table: 2.5 times faster than gathering all N slots with a 2-D
+    fancy index, and five times faster than an argmax over the slot axis."""
+    n = planes.shape[0]
     if n > 16:
-        return np.argmax(candidates == weakest, axis=0)
-    bits = np.zeros(candidates.shape[1], np.intp)
+        return np.argmax(planes[:, pixels] == weakest, axis=0)
+    bits = np.zeros(pixels.size, np.uint16)
     for k in range(n):
-        bits |= (candidates[k] == weakest).astype(np.intp) << k
+        equal = planes[k].take(pixels) == weakest
+        bits |= equal.view(np.uint8).astype(np.uint16) << np.uint16(k)
     return _LOWEST_BIT[bits]
 
 
@@ -289,6 +295,19 @@ class TileStore:
         """Offer one frame's pixels at ``pose`` to the tiles it covers; ``movable``: it
         may be taken out again (``remove``) until it is settled."""
         layers = np.dstack([image, score, mask.astype(np.float32)])
+        return self.insert_layers(frame_index, layers, mask, grid, pose, time, movable)
+
+    def insert_layers(
+        self,
+        frame_index: int,
+        layers: FloatImage,
+        mask: npt.NDArray[np.bool_],
+        grid: SonarGrid,
+        pose: SonarPose,
+        time: float,
+        movable: bool = True,
+    ) -> list[TileKey]:
+        """``insert`` with the frame as one (rows, cols, 3) stack: image, score, mask."""
         tag = np.uint16(frame_index % 0xFFFF)
         if movable:
             self.movable.add(frame_index)
@@ -304,18 +323,18 @@ class TileStore:
             r0, r1, c0, c1 = box
             scores = quantise_score(warped[..., 1])
             values = np.clip(np.rint(warped[..., 0] * 255.0), 0, 255).astype(np.uint8)
-            slot_scores = tile.score[:, r0:r1, c0:c1]
-            weakest = slot_scores.min(axis=0)
+            weakest = tile.score[:, r0:r1, c0:c1].min(axis=0)
             better = valid & (scores > weakest)
             tile.mark(box, better)
             rows, cols = np.nonzero(better)
             if rows.size:
                 # Each improved pixel's candidate goes into its first slot holding the
-                # weakest one: the slots holding it as bits, the lowest bit from a table
-                # (an argmax over the slot axis is five times slower).
-                slot = _first_weakest(slot_scores[:, rows, cols], weakest[rows, cols])
-                plane = tile.score.shape[1] * tile.score.shape[2]
-                flat = slot * plane + (rows + r0) * tile.score.shape[2] + (cols + c0)
+                # weakest one.
+                width = tile.score.shape[2]
+                planes = tile.score.reshape(tile.score.shape[0], -1)
+                pixels = (rows + r0) * width + (cols + c0)
+                slot = _first_weakest(planes, pixels, weakest[rows, cols])
+                flat = slot * planes.shape[1] + pixels
                 tile.score.reshape(-1)[flat] = scores[rows, cols]
                 tile.intensity.reshape(-1)[flat] = values[rows, cols]
                 tile.frame.reshape(-1)[flat] = tag
@@ -337,8 +356,8 @@ class TileStore:
             frames = tile.frame[:, r0:r1, c0:c1]
             hit = frames == tag
             # In place under the mask: 2.9 ms a 5 m fan against 3.2 with boolean indexing.
+            # A slot is empty where its score is 0: its intensity is never read.
             np.copyto(tile.score[:, r0:r1, c0:c1], 0, where=hit)
-            np.copyto(tile.intensity[:, r0:r1, c0:c1], 0, where=hit)
             np.copyto(frames, NO_FRAME, where=hit)
             tile.mark(box, hit.any(axis=0))
 

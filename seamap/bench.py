@@ -63,6 +63,9 @@ class BenchResult:
     rss_growth_mb_per_1000: float
     latency_p50_s: float
     latency_p95_s: float
+    stall_max_s: float
+    """The longest the engine held one sample (a re-solve redrawing its stretch): the
+    daemon's backlog must absorb it."""
     tiles_published: int
     frames_mapped: int
     frames_rejected: int
@@ -94,6 +97,7 @@ class BenchResult:
             "rss_growth_mb_per_1000_frames": self.rss_growth_mb_per_1000,
             "latency_p50_s": self.latency_p50_s,
             "latency_p95_s": self.latency_p95_s,
+            "stall_max_s": self.stall_max_s,
             "tiles_published": self.tiles_published,
             "stages": self.stages_ms,
             "final_pass_s": self.final_pass_s,
@@ -150,12 +154,14 @@ def run_bench(
     rss_start, _ = rss_mb()
     memory: list[tuple[int, float]] = []
     engine_s = 0.0
+    stall = 0.0
     frames = 0
     for _, sample in stream.events:
         started = time.perf_counter()
         engine.add(sample)  # type: ignore[arg-type]
         spent = time.perf_counter() - started
         engine_s += spent
+        stall = max(stall, spent)
         if isinstance(sample, Ping):
             frames += 1
             ping_time.append(sample.time)
@@ -202,6 +208,7 @@ def run_bench(
         rss_growth_mb_per_1000=growth,
         latency_p50_s=float(np.percentile(lat, 50)),
         latency_p95_s=float(np.percentile(lat, 95)),
+        stall_max_s=stall,
         tiles_published=tiles_published,
         frames_mapped=stats.frames_mapped,
         frames_rejected=stats.frames_rejected,
@@ -234,6 +241,7 @@ def format_table(result: BenchResult) -> str:
         f"  frames per second        {j['frames_per_second']:.1f}",
         f"  real time at 10 Hz       x{j['realtime_factor_10hz']:.1f}",
         f"  latency p50 / p95        {j['latency_p50_s']:.2f} s / {j['latency_p95_s']:.2f} s",
+        f"  longest stall            {j['stall_max_s']:.2f} s",
         f"  memory start / end / peak {j['rss_start_mb']:.0f} / {j['rss_end_mb']:.0f} / "
         f"{j['peak_rss_mb']:.0f} MB",
         f"  memory growth            {_growth(j['rss_growth_mb_per_1000_frames'])}",

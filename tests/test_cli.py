@@ -117,6 +117,7 @@ def test_bench_reports_the_numbers_we_steer_by() -> None:
         "peak_rss_mb",
         "rss_growth_mb_per_1000_frames",
         "latency_p95_s",
+        "stall_max_s",
         "stages",
     ):
         assert key in report

@@ -145,7 +145,7 @@ def test_translation_alignment_keeps_the_shape_and_the_orientation() -> None:
     drawn = np.column_stack([rng.uniform(0, 20, 40), rng.uniform(0, 20, 40), rng.uniform(0, 6, 40)])
     solved = drawn + np.array([0.05, -0.03, 0.0])
     solved[7, :2] += 0.5
-    out = align(solved, drawn, 0.0)
+    out = align(solved, drawn, 0.0).poses(solved)
     np.testing.assert_allclose(out[:, 2], solved[:, 2])
     np.testing.assert_allclose(
         out[:, :2] - solved[:, :2], np.broadcast_to(out[0, :2] - solved[0, :2], (40, 2))
@@ -186,11 +186,16 @@ def test_alignment_turns_the_stretch_back_by_a_bounded_angle() -> None:
         solved[:, 0] = drawn[:, 0] * c - drawn[:, 1] * s + 0.3
         solved[:, 1] = drawn[:, 0] * s + drawn[:, 1] * c - 0.2
         solved[:, 2] = drawn[:, 2] - t
-        out = align(solved, drawn, math.radians(0.25))
+        frame = align(solved, drawn, math.radians(0.25))
+        out = frame.poses(solved)
         back = np.degrees(np.remainder(out[:, 2] - solved[:, 2] + math.pi, 2 * math.pi) - math.pi)
         np.testing.assert_allclose(back, expected, atol=1e-9)
         if turn_deg < 0.25:
             np.testing.assert_allclose(out, drawn, atol=1e-9)
+        # Points go as the poses do, and back.
+        x, y = frame.point(float(solved[5, 0]), float(solved[5, 1]))
+        np.testing.assert_allclose((x, y), out[5, :2], atol=1e-9)
+        np.testing.assert_allclose(frame.inverse().poses(out)[:, :2], solved[:, :2], atol=1e-9)
 
 
 def test_frames_the_chain_bridged_are_bridged_as_it_did() -> None:

@@ -4,6 +4,7 @@ versions grow, and a survey-end pass equal to the offline single-stage pipeline.
 from __future__ import annotations
 
 import heapq
+import math
 import random
 from collections import defaultdict
 from collections.abc import Iterator
@@ -16,6 +17,7 @@ import pytest
 
 from drivers.oculus.logfile import iter_pings
 from mapping.frames import SonarMount
+from mapping.live_resolve import ResolveParams
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
@@ -189,3 +191,41 @@ def test_survey_end_pass_reusing_live_registrations_keeps_the_shape(recorded: Re
     assert np.linalg.norm(shift, axis=1).max() < 0.1
     shape = np.linalg.norm(shift - np.median(shift, axis=0), axis=1)
     assert np.percentile(shape, 90) < 0.015
+
+
+def test_a_re_solve_redraws_over_the_next_frames_and_ends_drawn_where_it_put_them(
+    stream: Stream,
+) -> None:
+    """A re-solve may move hundreds of frames: drawn again all at once, the engine would
+    hold the next ping for seconds (the daemon would skip frames). They are drawn again
+    at the redraw rate as the pings come, and by the end every frame is drawn at its
+    pose."""
+    resolve = replace(ResolveParams(), redraw_m=0.001, every_s=5.0)
+    engine = stream.engine(resolve=resolve)
+    per_sample: list[int] = []
+    redraw_one = engine._redraw_one
+
+    def counted(*args: Any) -> None:
+        per_sample[-1] += 1
+        redraw_one(*args)
+
+    engine._redraw_one = counted  # type: ignore[method-assign,assignment]
+    pings = [s.time for s in stream.samples if isinstance(s, Ping)]
+    gap = float(np.max(np.diff(pings)))
+    for sample in stream.samples:
+        per_sample.append(0)
+        engine.add(sample)
+    engine.flush()
+    assert engine.stats.resolves >= 2
+    assert sum(per_sample[:-1]) >= 50  # moved frames drawn again while pinging
+    # While pinging, at most what the rate allows over the longest gap between pings
+    # (the reorder window may release two pings together); the flush draws the rest.
+    assert max(per_sample[:-1]) <= resolve.redraw_rate * 2 * gap + 1
+    assert not engine._to_redraw
+    # Drawn where its pose is (within what leaving the live window re-blends for).
+    tolerance = max(resolve.redraw_m, engine.params.move_threshold_m)
+    for k, drawn in engine.resolver.drawn.items():
+        sonar = engine.mount.sonar_pose(engine.poses[k])
+        moved = np.hypot(*(sonar[:2] - drawn.blended_sonar[:2]))
+        moved += 5.0 * abs(math.remainder(sonar[2] - drawn.blended_sonar[2], 2 * math.pi))
+        assert moved <= tolerance + 1e-9, k
