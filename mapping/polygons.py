@@ -105,7 +105,8 @@ def _in_ring(ring: FloatArray, east: FloatArray, north: FloatArray) -> BoolArray
     x2, y2 = ring[-1]
     for x1, y1 in ring:
         crosses = (y1 > north) != (y2 > north)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        # A near-horizontal edge overflows where it is not crossed (and not used).
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             x_at = x1 + (north - y1) * (x2 - x1) / (y2 - y1)
         inside ^= crosses & (east < x_at)
         x2, y2 = x1, y1

@@ -278,12 +278,13 @@ class StreamingEngine:
         single = p.single_stage
         self.resolver = LiveResolver(self.params.resolve, single.fusion, single.graph)
         self.drawn_frame = DrawnFrame()
+        """The live map's frame against the GNSS's (``mapping.live_resolve.align``)."""
         self._to_redraw: dict[int, Array] = {}
         """Frames the last re-solve moved and that are still to be drawn again."""
         self._redraw_credit = 0.0
         self._redraw_time = 0.0
         self._redraw_recent: deque[list[TileKey]] = deque(maxlen=10)
-        """The live map's frame against the GNSS's (``mapping.live_resolve.align``)."""
+        """The tiles of the last redraws: kept in memory while redraws go on."""
         # The raw navigation for the survey-end pass: IMU rows compactly in arrays.
         self._imu = _ImuRecord()
         self._fixes: list[GnssFix] = []
@@ -863,7 +864,8 @@ class StreamingEngine:
             if len(self.tiles.active) > self.params.resolve_tiles_in_memory:
                 # Tiles of a stretch the boat has left were loaded to be redrawn: they
                 # leave memory again as the redraw moves on (memory follows the area),
-                # but not those the last few redraws used (the next ones use them too).
+                # but not those the last few redraws used (``_evict``: the next ones
+                # use them too).
                 self._evict(now)
         if not self._to_redraw:
             self._redraw_credit = 0.0
