@@ -437,8 +437,10 @@ def test_a_vehicle_that_will_not_arm_is_not_started(tmp_path: Path, port: int) -
         plan = mission.load_plan(write_plan(tmp_path))
         with pytest.raises(SeamapError, match="not armable: arming failed"):
             asyncio.run(mission.start_survey(plan, url_of(port), timeout_s=10))
+        # The refusal is recorded on MAVSDK's own thread: wait for it (bounded).
+        wait_for(lambda: peer.uploads and peer.arm_requests, timeout_s=5.0)
         assert len(peer.uploads) == 1
-        assert peer.arm_requests and all(r == ("COMMAND_DENIED", True) for r in peer.arm_requests)
+        assert all(r == ("COMMAND_DENIED", True) for r in peer.arm_requests)
         assert peer.mode_requests == []
     finally:
         peer.close()
