@@ -60,7 +60,7 @@ from mapping.polar import Attitude
 from mapping.posegraph import Edge
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
 from mapping.survey_graph import registration_sqrt_info
-from mapping.tiles import TileImage, TileSpill, TileStore
+from mapping.tiles import TileImage, TileSpill, TileStore, frame_layers
 
 Array = npt.NDArray[np.float64]
 Sample = ImuSample | GnssFix | HeadingSample | AttitudeSample | Ping
@@ -480,7 +480,7 @@ class StreamingEngine:
         assert grid is not None
         score = self.scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
         sonar = self.mount.sonar_pose(pose)
-        layers = np.dstack([sonar_frame.image, score, sonar_frame.mask.astype(np.float32)])
+        layers = frame_layers(sonar_frame.image, score, sonar_frame.mask)
         touched = self._insert(index, layers, sonar_frame.mask, grid, sonar, ping.time)
         self._live[index] = _Live(index, ping.time, layers, sonar_frame.mask, grid, touched, sonar)
         stats.time("blending", started)

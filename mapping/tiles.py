@@ -53,8 +53,8 @@ def _first_weakest(
     first of the N slots whose score equals ``weakest``.
 
     Slot by slot, gathered with ``take`` (contiguous), the slots holding it as bits and
-    the lowest bit from a table: 2.5 times faster than gathering all N slots with a 2-D
-    fancy index, and five times faster than an argmax over the slot axis."""
+    the lowest bit from a table: 0.73 ms for 22 000 pixels of 16 slots, against 1.58
+    gathering all N slots with one 2-D fancy index and 1.26 for an argmax over them."""
     n = planes.shape[0]
     if n > 16:
         return np.argmax(planes[:, pixels] == weakest, axis=0)
@@ -69,6 +69,11 @@ def quantise_score(score: FloatImage) -> npt.NDArray[np.uint16]:
     """Scores in (0, 1] to 1..65535 (0 stays 0: an empty slot)."""
     q = np.rint(np.clip(score, 0.0, 1.0) * 65535.0)
     return np.where(score > 0.0, np.maximum(q, 1.0), 0.0).astype(np.uint16)
+
+
+def frame_layers(image: FloatImage, score: FloatImage, mask: npt.NDArray[np.bool_]) -> FloatImage:
+    """A frame as the tiles warp it: one (rows, cols, 3) stack of image, score, mask."""
+    return np.dstack([image, score, mask.astype(np.float32)])
 
 
 class TileSpill(Protocol):
@@ -294,7 +299,7 @@ class TileStore:
     ) -> list[TileKey]:
         """Offer one frame's pixels at ``pose`` to the tiles it covers; ``movable``: it
         may be taken out again (``remove``) until it is settled."""
-        layers = np.dstack([image, score, mask.astype(np.float32)])
+        layers = frame_layers(image, score, mask)
         return self.insert_layers(frame_index, layers, mask, grid, pose, time, movable)
 
     def insert_layers(
