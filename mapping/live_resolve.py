@@ -80,16 +80,15 @@ class ResolveParams:
     redraw_m: float = 0.03
     """A frame whose fan moved more than this (its far edge, 5 m out, for a turn) is drawn
     again: one and a half mosaic pixels."""
-    redraw_rate: float = 20.0
-    """Redraws per second of survey, on average: after a re-solve that redrew R frames
-    the next waits R / this (at least ``every_s``). A redraw costs about a blend (7 ms
-    here); every frame that moved is redrawn (redrawing only some, those that moved most,
-    left neighbours drawn apart: quadrats seed 6 at 2 Hz, live lanes 8.0 -> 11.9 cm,
-    quadrat spacing 2.1 -> 4.4 cm), so the re-solves space out as the stretch grows and
-    the live engine keeps up at any ping rate. Measured with a budget of one redraw per
-    new frame instead (the same cost per frame at any rate): live lanes 14.3 / 13.7 /
-    10.4 cm on quadrats seed 6 at 2 Hz, current seed 2, seed 2, against 12.7 / 6.6 / 7.1
-    with this budget, and quadrat spacing 2 -> 11 cm on two of them."""
+    redraws_per_frame: float = 0.5
+    """Frames drawn again per new frame, on average: a re-solve's moved frames wait in a
+    queue and are drawn again as the pings come, so the re-solve's cost per frame is
+    bounded by construction, whatever a re-solve moves and at any ping rate (a redraw,
+    its tiles' render and their spill cost about 12 ms here, a quarter of a frame at
+    5 Hz). The re-solves themselves go on every ``every_s``; a frame still waiting takes
+    the newer solution. The live lanes are the solution's, so this sets only how soon
+    the drawn map follows it (measured on ten surveys: live lanes 7.6 cm at the median
+    with one redraw a frame, as with twenty a second and re-solves waiting for them)."""
     max_turn_deg: float = 1.0
     """The re-solved stretch is first moved, and turned by up to this, to fit where it is
     drawn (``align``), and the live chain is drawn in that frame (``DrawnFrame``). A
@@ -283,11 +282,10 @@ class LiveResolver:
     def due(self, now: float) -> bool:
         return self.params.enabled and len(self.drawn) >= 2 and now >= self.next_solve_time
 
-    def redrawn(self, now: float, count: int) -> None:
-        """A re-solve at ``now`` redrew ``count`` frames (none when it had nothing to
-        solve): when the next may come."""
-        p = self.params
-        self.next_solve_time = now + max(p.every_s, count / max(p.redraw_rate, 1e-9))
+    def solved(self, now: float) -> None:
+        """A re-solve ran (or had nothing to solve) at ``now``: the next comes ``every_s``
+        later."""
+        self.next_solve_time = now + self.params.every_s
 
     def solve(self, drawn_poses: PoseLookup) -> tuple[list[int], Array] | None:
         """Place the kept frames again. ``drawn_poses[k]``: where frame k is drawn now

@@ -85,6 +85,17 @@ def tile_box(
     return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
 
 
+def _affine_inverse(m: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The inverse of a 3x3 2-D affine (last row 0, 0, 1), without a general inverse."""
+    a, b, c, d = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
+    det = a * d - b * c
+    ia, ib, ic, id_ = d / det, -b / det, -c / det, a / det
+    tx, ty = m[0, 2], m[1, 2]
+    return np.array(
+        [[ia, ib, -(ia * tx + ib * ty)], [ic, id_, -(ic * tx + id_ * ty)], [0.0, 0.0, 1.0]]
+    )
+
+
 def warp_to_tile(
     layers: FloatImage,
     grid: SonarGrid,
@@ -98,8 +109,8 @@ def warp_to_tile(
     r0, r1, c0, c1 = box if box is not None else (0, tiles.tile_px, 0, tiles.tile_px)
     # tile pixel -> UTM -> sonar metric -> sonar pixel, as one affine for cv2.
     to_sonar_pixel = (
-        np.linalg.inv(grid.pixel_to_metric())
-        @ np.linalg.inv(sonar_to_utm(pose))
+        _affine_inverse(grid.pixel_to_metric())
+        @ _affine_inverse(sonar_to_utm(pose))
         @ tiles.tile_pixel_to_utm(key)
         @ np.array([[1.0, 0.0, c0], [0.0, 1.0, r0], [0.0, 0.0, 1.0]])
     )

@@ -63,6 +63,8 @@ from mapping.survey_graph import registration_sqrt_info
 from mapping.tiles import TileImage, TileSpill, TileStore, frame_layers
 
 Array = npt.NDArray[np.float64]
+_MOST_REDRAWS = 3.0
+"""Frames drawn again with one new frame, at most."""
 Sample = ImuSample | GnssFix | HeadingSample | AttitudeSample | Ping
 
 
@@ -89,6 +91,11 @@ class StreamingParams:
     ``reorder_s`` plus this."""
     refine_every_s: float = 1.5
     """Pixels that already showed are re-rendered (refined by later frames) this often."""
+    redraw_render_every_s: float = 6.0
+    """Pixels a re-solve's redraws changed are rendered this often: a stretch's redraws
+    go on for tens of seconds over the same tiles, and rendering them with every refine
+    re-blended each pixel four or five times (quadrats seed 1 at 2 Hz: render 21.7 ->
+    37.7 ms a frame with re-solves)."""
     evict_after_s: float = 30.0
     """A tile no frame has touched for this long leaves memory."""
     live_registration_res_m: float | None = 0.03
@@ -174,6 +181,10 @@ class StreamStats:
     resolves: int = 0
     frames_redrawn: int = 0
     """Final frames drawn again after a re-solve moved them."""
+    redraw_wait_s: float = 0.0
+    """Survey time moved frames waited to be drawn again, summed: the drawn map's lag
+    behind the re-solve (the mean is this over ``frames_redrawn``)."""
+    redraw_wait_max_s: float = 0.0
     rejected: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
 
@@ -262,6 +273,7 @@ class StreamingEngine:
         self._since_solve = 0
         self._last_render = -math.inf
         self._last_refine = -math.inf
+        self._last_redrawn_render = -math.inf
         self._pending_frames: dict[TileKey, list[int]] = {}
         # The live chain: per accepted frame, its chained position (local east/north),
         # raw chained heading, and the filter's odometry there (to bridge rejections).
@@ -280,9 +292,12 @@ class StreamingEngine:
         self.drawn_frame = DrawnFrame()
         """The live map's frame against the GNSS's (``mapping.live_resolve.align``)."""
         self._to_redraw: dict[int, Array] = {}
-        """Frames the last re-solve moved and that are still to be drawn again."""
+        """Frames re-solves moved that are still to be drawn again, and their poses."""
+        self._queued_at: dict[int, float] = {}
         self._redraw_credit = 0.0
-        self._redraw_time = 0.0
+        self._redraw_cursor = -1
+        """The frame last drawn again: the queue is swept from the oldest frame on, from
+        just after this one."""
         self._redraw_recent: deque[list[TileKey]] = deque(maxlen=10)
         """The tiles of the last redraws: kept in memory while redraws go on."""
         # The raw navigation for the survey-end pass: IMU rows compactly in arrays.
@@ -325,7 +340,7 @@ class StreamingEngine:
         make every remaining pose final."""
         self._release(math.inf)
         self._solve_window(final=True)
-        self._redraw(self._released, everything=True)
+        self._redraw(self._released, 0.0, everything=True)
         self._render(force=True)
 
     def _release(self, upto: float) -> None:
@@ -488,9 +503,10 @@ class StreamingEngine:
         self._since_solve += 1
         if self._since_solve >= self.params.solve_every:
             self._solve_window(final=False)
-        self._redraw(ping.time)
-        if not self._to_redraw and self.resolver.due(ping.time):
+        if self.resolver.due(ping.time):
             self._resolve(ping.time)
+        if self.params.resolve.enabled:
+            self._redraw(ping.time, self.params.resolve.redraws_per_frame)
         self._render(force=False)
 
     def _insert(
@@ -501,13 +517,14 @@ class StreamingEngine:
         grid: SonarGrid,
         sonar: Array,
         time: float,
+        deferred: bool = False,
     ) -> list[TileKey]:
         """Offer a frame (its stack of image, score and mask) to the tiles at sonar pose
-        ``sonar`` (local)."""
+        ``sonar`` (local); ``deferred``: a redraw (rendered at ``redraw_render_every_s``)."""
         assert self.frame is not None
         east, north = self.frame.to_utm(sonar[0], sonar[1])
         pose = SonarPose(float(east), float(north), float(sonar[2]))
-        touched = self.tiles.insert_layers(index, layers, mask, grid, pose, time)
+        touched = self.tiles.insert_layers(index, layers, mask, grid, pose, time, deferred=deferred)
         for key in touched:
             self._pending_frames.setdefault(key, []).append(index)
         return touched
@@ -738,7 +755,11 @@ class StreamingEngine:
         for old in self.resolver.keep(drawn):
             pose = self._to_redraw.pop(old.index, None)
             if pose is not None:
-                self._redraw_one(old, pose)
+                # Its image goes: drawn at its pose now, on the redraw budget's account
+                # (at 10 Hz, 487 of 835 frames let go were still waiting: 2.3 ms a frame
+                # beyond the budget).
+                self._redraw_one(old, pose, live.time)
+                self._redraw_credit -= 1.0
             self.tiles.settle(old.index, old.tiles)
 
     def _take_closures(self) -> None:
@@ -765,8 +786,8 @@ class StreamingEngine:
         # The solution is in the GNSS's frame: what holds it (the frame before the
         # stretch, keyframes outside it) is taken there from where it is drawn.
         out = resolver.solve(_PosesIn(back, self.poses))
+        resolver.solved(now)
         if out is None:
-            resolver.redrawn(now, 0)
             return
         nodes, in_gnss = out
         self.stats.resolves += 1
@@ -786,22 +807,26 @@ class StreamingEngine:
             drawn = resolver.drawn.get(k)
             if drawn is None:
                 continue
+            # Against its pose (where it is drawn, or is to be drawn once its turn in the
+            # queue comes): the live poses do not depend on how soon frames are drawn.
             sonar = self.mount.sonar_pose(solved[m])
-            moved = math.hypot(sonar[0] - drawn.blended_sonar[0], sonar[1] - drawn.blended_sonar[1])
-            moved += 5.0 * abs(math.remainder(sonar[2] - drawn.blended_sonar[2], 2 * math.pi))
+            was = self.mount.sonar_pose(self.poses[k])
+            moved = math.hypot(sonar[0] - was[0], sonar[1] - was[1])
+            moved += 5.0 * abs(math.remainder(sonar[2] - was[2], 2 * math.pi))
             if moved > rp.redraw_m:
                 moved_nodes.append(m)
-        # Every frame that moved is redrawn: redrawing only those that moved most (at
-        # most two or four per new frame) left neighbours drawn apart (quadrats seed 6 at
-        # 2 Hz: live lanes 8.0 -> 11.9 / 10.4 cm, quadrat spacing 2.1 -> 4.4 / 6.5 cm).
-        # Its pose and its keyframe move now; it is drawn again as the next frames come
-        # (``_redraw``), at the re-solve's redraw rate, so that no frame waits for a
-        # stretch's worth of redraws (seconds: the daemon would skip frames).
+        # Every frame that moved is drawn again: redrawing only those that moved most
+        # left neighbours drawn apart (quadrats seed 6 at 2 Hz: live lanes 8.0 -> 11.9 /
+        # 10.4 cm, quadrat spacing 2.1 -> 4.4 / 6.5 cm). Its pose and its keyframe move
+        # now; it is drawn again as the next frames come (``_redraw``), so that no frame
+        # waits for a stretch's worth of redraws (seconds: the daemon would skip frames)
+        # and the redraws take a bounded share of the engine's time.
         for m in moved_nodes:
             k, pose = nodes[m], solved[m]
             drawn = resolver.drawn[k]
             self.poses[k] = np.array(pose, float)
             self._to_redraw[k] = self.poses[k]
+            self._queued_at.setdefault(k, now)
             self._emit_pose(k, final=True)
             if self.closures is not None:
                 correction = np.array(
@@ -812,9 +837,6 @@ class StreamingEngine:
                     ]
                 )
                 self.closures.store.move(k, pose, self.mount.sonar_pose(pose), correction)
-        self._redraw_credit = 0.0
-        self._redraw_time = now
-        resolver.redrawn(now, len(moved_nodes))
         if self.closures is not None:
             self.closures.rebase()
         # The chain carries on from the re-solved map: the frames drawn since the last
@@ -842,24 +864,38 @@ class StreamingEngine:
         self.drawn_frame = new
         self.stats.time("resolve", started)
 
-    def _redraw(self, now: float, everything: bool = False) -> None:
-        """Draw again frames a re-solve moved, at ``resolve.redraw_rate`` a second of
-        survey time (all of them with ``everything``), the newest first (next to where
-        the chain goes on)."""
+    def _redraw(self, now: float, credit: float, everything: bool = False) -> None:
+        """Draw again frames re-solves moved: ``credit`` more of them (a new frame's
+        ``resolve.redraws_per_frame``; what is left over carries to the next frame, up
+        to three), or all of them with ``everything``.
+
+        The queue is swept along the track, from the oldest frame to the newest and round
+        again: consecutive redraws use the same tiles (drawn in order of how far they
+        moved, a redraw loaded tiles from all over the stretch: 21 tiles in memory at
+        once where 16 sufficed), no frame waits more than a sweep while new re-solves
+        queue others, and the oldest, whose images go first (``resolve.memory_mb``), are
+        drawn before they must be at once (newest first, those let go while waiting
+        were 3 ms a frame at 10 Hz beyond the budget)."""
         if not self._to_redraw:
+            self._redraw_credit = 0.0
             return
         started = clock.perf_counter()
-        rate = self.params.resolve.redraw_rate
-        self._redraw_credit += rate * max(now - self._redraw_time, 0.0)
-        self._redraw_time = now
+        self._redraw_credit = min(self._redraw_credit + credit, _MOST_REDRAWS)
         recent = self._redraw_recent
-        while self._to_redraw and (everything or self._redraw_credit >= 1.0):
-            k, pose = self._to_redraw.popitem()
+        queue = self._to_redraw
+        while queue and (everything or self._redraw_credit >= 1.0):
+            cursor = self._redraw_cursor
+            k = min((j for j in queue if j > cursor), default=-1)
+            if k < 0:
+                k = min(queue)
+            self._redraw_cursor = k
+            pose = queue.pop(k)
             self._redraw_credit -= 1.0
             drawn = self.resolver.drawn.get(k)
             if drawn is None:
+                self._queued_at.pop(k, None)
                 continue
-            self._redraw_one(drawn, pose)
+            self._redraw_one(drawn, pose, now)
             recent.append(drawn.tiles)
             if len(self.tiles.active) > self.params.resolve_tiles_in_memory:
                 # Tiles of a stretch the boat has left were loaded to be redrawn: they
@@ -867,17 +903,20 @@ class StreamingEngine:
                 # but not those the last few redraws used (``_evict``: the next ones
                 # use them too).
                 self._evict(now)
-        if not self._to_redraw:
+        if not queue:
             self._redraw_credit = 0.0
             recent.clear()
         self.stats.time("resolve", started)
 
-    def _redraw_one(self, drawn: Drawn, pose: Array) -> None:
+    def _redraw_one(self, drawn: Drawn, pose: Array, now: float) -> None:
         k = drawn.index
+        wait = max(now - self._queued_at.pop(k, now), 0.0)
+        self.stats.redraw_wait_s += wait
+        self.stats.redraw_wait_max_s = max(self.stats.redraw_wait_max_s, wait)
         sonar = self.mount.sonar_pose(pose)
-        self.tiles.remove(k, drawn.tiles)
+        self.tiles.remove(k, drawn.tiles, deferred=True)
         layers, mask = drawn.layers()
-        drawn.tiles = self._insert(k, layers, mask, drawn.grid, sonar, drawn.time)
+        drawn.tiles = self._insert(k, layers, mask, drawn.grid, sonar, drawn.time, deferred=True)
         drawn.blended_sonar = sonar
         self.stats.frames_redrawn += 1
 
@@ -919,7 +958,10 @@ class StreamingEngine:
         full = force or now - self._last_refine >= self.params.refine_every_s
         if full:
             self._last_refine = now
-        for image in self.tiles.render_dirty(new_only=not full):
+        redrawn = force or now - self._last_redrawn_render >= self.params.redraw_render_every_s
+        if redrawn and full:
+            self._last_redrawn_render = now
+        for image in self.tiles.render_dirty(new_only=not full, deferred=redrawn):
             self._publish(image)
         self._evict(now)
         self.stats.time("render", started)

@@ -19,6 +19,7 @@ stack; the live map accepts that small loss, and the survey-end pass renders fro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -71,6 +72,16 @@ def quantise_score(score: FloatImage) -> npt.NDArray[np.uint16]:
     return np.where(score > 0.0, np.maximum(q, 1.0), 0.0).astype(np.uint16)
 
 
+def _quantise_valid(score: FloatImage, valid: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint16]:
+    """``quantise_score`` where ``valid`` (scores > 0 there); elsewhere any value."""
+    q = np.multiply(score, np.float32(65535.0))
+    np.rint(q, out=q)
+    np.clip(q, 0.0, 65535.0, out=q)
+    out = q.astype(np.uint16)
+    # A valid score too small to quantise is the smallest, not an empty slot.
+    return np.maximum(out, valid.view(np.uint8), out=out)
+
+
 def frame_layers(image: FloatImage, score: FloatImage, mask: npt.NDArray[np.bool_]) -> FloatImage:
     """A frame as the tiles warp it: one (rows, cols, 3) stack of image, score, mask."""
     return np.dstack([image, score, mask.astype(np.float32)])
@@ -115,6 +126,9 @@ class Tile:
     version: int = 0
     last_touch: float = 0.0
     changed: npt.NDArray[np.bool_] | None = None  # pixels to render again (None: none)
+    deferred: npt.NDArray[np.bool_] | None = None
+    """Pixels frames drawn again changed (a re-solve's redraws): rendered with the rest
+    at a slower pace (``render(..., deferred=True)``)."""
     rendered: npt.NDArray[np.uint8] | None = None  # last rendered values, 0 = no data
     boxes: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)
     """Where each frame that may still move put its candidates (row0, row1, col0, col1)."""
@@ -130,15 +144,22 @@ class Tile:
 
     @property
     def dirty(self) -> bool:
-        return self.changed is not None
+        return self.changed is not None or self.deferred is not None
 
-    def mark(self, box: tuple[int, int, int, int], pixels: npt.NDArray[np.bool_]) -> None:
+    def mark(
+        self, box: tuple[int, int, int, int], pixels: npt.NDArray[np.bool_], deferred: bool = False
+    ) -> None:
         """Note that ``pixels`` (a mask over ``box``) changed and need rendering."""
         if not pixels.any():
             return
+        r0, r1, c0, c1 = box
+        if deferred:
+            if self.deferred is None:
+                self.deferred = np.zeros(self.score.shape[1:], bool)
+            self.deferred[r0:r1, c0:c1] |= pixels
+            return
         if self.changed is None:
             self.changed = np.zeros(self.score.shape[1:], bool)
-        r0, r1, c0, c1 = box
         self.changed[r0:r1, c0:c1] |= pixels
 
     @property
@@ -258,32 +279,37 @@ class TileStore:
         x, y = world[0], world[1]
         t = self.grid.tile_m
         margin = spacing + 2 * self.grid.res_m
-        keys: set[TileKey] = set()
-        for dx in (-margin, margin):
-            for dy in (-margin, margin):
-                cols = np.floor((x + dx) / t).astype(np.int64).tolist()
-                rows = np.floor((y + dy) / t).astype(np.int64).tolist()
-                keys.update(zip(cols, rows, strict=True))
         boxes: dict[TileKey, tuple[int, int, int, int]] = {}
-        for key in keys:
-            x0, y0 = key[0] * t, key[1] * t
-            near = (
-                (x >= x0 - margin)
-                & (x < x0 + t + margin)
-                & (y >= y0 - margin)
-                & (y < y0 + t + margin)
-            )
-            if not near.any():
+        if x.size == 0:
+            return boxes
+        # Each tile within a margin of a sample: a column of tiles at a time over the
+        # samples' extent (0.2 ms a fan, against 1.1 for a set of every sample's tiles).
+        for col in range(
+            math.floor((float(x.min()) - margin) / t), math.floor((float(x.max()) + margin) / t) + 1
+        ):
+            x0 = col * t
+            in_col = (x >= x0 - margin) & (x < x0 + t + margin)
+            if not in_col.any():
                 continue
-            bounds = (
-                float(x[near].min()) - margin,
-                float(y[near].min()) - margin,
-                float(x[near].max()) + margin,
-                float(y[near].max()) + margin,
-            )
-            box = tile_box(self.grid, key, bounds)
-            if box is not None:
-                boxes[key] = box
+            xc, yc = x[in_col], y[in_col]
+            for row in range(
+                math.floor((float(yc.min()) - margin) / t),
+                math.floor((float(yc.max()) + margin) / t) + 1,
+            ):
+                y0 = row * t
+                near = (yc >= y0 - margin) & (yc < y0 + t + margin)
+                if not near.any():
+                    continue
+                xn, yn = xc[near], yc[near]
+                bounds = (
+                    float(xn.min()) - margin,
+                    float(yn.min()) - margin,
+                    float(xn.max()) + margin,
+                    float(yn.max()) + margin,
+                )
+                box = tile_box(self.grid, (col, row), bounds)
+                if box is not None:
+                    boxes[(col, row)] = box
         return boxes
 
     def insert(
@@ -311,8 +337,10 @@ class TileStore:
         pose: SonarPose,
         time: float,
         movable: bool = True,
+        deferred: bool = False,
     ) -> list[TileKey]:
-        """``insert`` with the frame as one (rows, cols, 3) stack: image, score, mask."""
+        """``insert`` with the frame as one (rows, cols, 3) stack: image, score, mask;
+        ``deferred``: what it changes is rendered at the slower pace (a redraw)."""
         tag = np.uint16(frame_index % 0xFFFF)
         if movable:
             self.movable.add(frame_index)
@@ -326,11 +354,10 @@ class TileStore:
                 continue
             tile = self.tile(key)
             r0, r1, c0, c1 = box
-            scores = quantise_score(warped[..., 1])
-            values = np.clip(np.rint(warped[..., 0] * 255.0), 0, 255).astype(np.uint8)
+            scores = _quantise_valid(warped[..., 1], valid)
             weakest = tile.score[:, r0:r1, c0:c1].min(axis=0)
             better = valid & (scores > weakest)
-            tile.mark(box, better)
+            tile.mark(box, better, deferred)
             rows, cols = np.nonzero(better)
             if rows.size:
                 # Each improved pixel's candidate goes into its first slot holding the
@@ -340,8 +367,9 @@ class TileStore:
                 pixels = (rows + r0) * width + (cols + c0)
                 slot = _first_weakest(planes, pixels, weakest[rows, cols])
                 flat = slot * planes.shape[1] + pixels
+                values = np.rint(warped[rows, cols, 0] * np.float32(255.0))
                 tile.score.reshape(-1)[flat] = scores[rows, cols]
-                tile.intensity.reshape(-1)[flat] = values[rows, cols]
+                tile.intensity.reshape(-1)[flat] = np.clip(values, 0, 255).astype(np.uint8)
                 tile.frame.reshape(-1)[flat] = tag
             if movable:
                 tile.boxes[frame_index] = box
@@ -349,8 +377,9 @@ class TileStore:
             touched.append(key)
         return touched
 
-    def remove(self, frame_index: int, keys: Iterable[TileKey]) -> None:
-        """Take a frame's candidates out of the given tiles."""
+    def remove(self, frame_index: int, keys: Iterable[TileKey], deferred: bool = False) -> None:
+        """Take a frame's candidates out of the given tiles (``deferred``: see
+        ``insert_layers``)."""
         tag = np.uint16(frame_index % 0xFFFF)
         for key in keys:
             tile = self.tile(key)
@@ -364,7 +393,7 @@ class TileStore:
             # A slot is empty where its score is 0: its intensity is never read.
             np.copyto(tile.score[:, r0:r1, c0:c1], 0, where=hit)
             np.copyto(frames, NO_FRAME, where=hit)
-            tile.mark(box, hit.any(axis=0))
+            tile.mark(box, hit.any(axis=0), deferred)
 
     def settle(self, frame_index: int, keys: Iterable[TileKey]) -> None:
         """A frame will not move again: forget where it went (in a spilled tile, when it
@@ -376,23 +405,29 @@ class TileStore:
                 tile.boxes.pop(frame_index, None)
 
     # -- rendering ------------------------------------------------------------------
-    def render(self, key: TileKey, new_only: bool = False) -> TileImage:
+    def render(self, key: TileKey, new_only: bool = False, deferred: bool = True) -> TileImage:
         """Blend the tile's changed pixels; the version grows with each render.
 
         new_only: render just the changed pixels that had no data yet (new coverage, which
         must show at once), leaving refinements of covered pixels for a full render.
+        deferred: render the pixels redraws changed too (not with ``new_only``).
         """
         tile = self.tile(key)
         size = self.grid.tile_px
         keep_changed: npt.NDArray[np.bool_] | None = None
+        deferred = deferred and not new_only
         if tile.rendered is None:
             tile.rendered = np.zeros((size, size), np.uint8)
             rows, cols = np.nonzero((tile.score > 0).any(axis=0))
-        elif tile.changed is not None:
-            todo = tile.changed
+            tile.deferred = None
+        elif tile.changed is not None or (deferred and tile.deferred is not None):
+            todo = tile.changed if tile.changed is not None else np.zeros((size, size), bool)
             if new_only:
-                todo = tile.changed & (tile.rendered == 0)
+                todo = todo & (tile.rendered == 0)
                 keep_changed = tile.changed & ~todo
+            if deferred and tile.deferred is not None:
+                todo = todo | tile.deferred
+                tile.deferred = None
             rows, cols = np.nonzero(todo)
         else:
             rows = cols = np.zeros(0, np.intp)
@@ -420,12 +455,12 @@ class TileStore:
         self.versions[key] = tile.version
         return TileImage(key, tile.rendered.copy(), tile.version)
 
-    def render_dirty(self, new_only: bool = False) -> list[TileImage]:
+    def render_dirty(self, new_only: bool = False, deferred: bool = True) -> list[TileImage]:
         """Render every changed tile (``new_only``: only where coverage is new, and only
-        tiles that have some)."""
+        tiles that have some; ``deferred``: the pixels redraws changed too)."""
         out = []
         for key, tile in list(self.active.items()):
-            if not tile.dirty:
+            if tile.changed is None and not (deferred and not new_only and tile.dirty):
                 continue
             changed, rendered = tile.changed, tile.rendered
             if (
@@ -435,7 +470,7 @@ class TileStore:
                 and not (changed & (rendered == 0)).any()
             ):
                 continue
-            out.append(self.render(key, new_only))
+            out.append(self.render(key, new_only, deferred))
         return out
 
     def all_keys(self) -> list[TileKey]:

@@ -118,10 +118,13 @@ def test_bench_reports_the_numbers_we_steer_by() -> None:
         "rss_growth_mb_per_1000_frames",
         "latency_p95_s",
         "stall_max_s",
+        "flush_s",
+        "ms_per_frame_pinging",
         "stages",
     ):
         assert key in report
     assert report["frames"] == 40
+    assert 0 <= report["ms_per_frame_pinging"] <= report["ms_per_frame"]
     assert report["frames_per_second"] > 0
     assert report["realtime_factor_10hz"] == pytest.approx(report["frames_per_second"] / 10)
     assert {"preprocess", "registration", "blending", "render"} <= set(report["stages"])

@@ -98,3 +98,29 @@ def test_memory_is_bounded_by_the_tiles_being_worked() -> None:
     assert len(store.all_keys()) >= 15
     assert peak <= 6
     assert math.isfinite(store.nbytes)
+
+
+def test_a_redraw_shows_at_the_slower_pace_and_whenever_the_tile_leaves() -> None:
+    # A re-solve's redraws mark their pixels apart: a refine leaves them, a deferred
+    # render (or the tile's last render before it is spilled) blends them.
+    store = TileStore(TILES, spill=MemorySpill(), evict_after_s=5.0)
+    image, score, mask = frame(0.5)
+    keys = store.insert(0, image, score, mask, GRID, pose(0.2, 0.1), time=0.0)
+    before = store.render_dirty()[0].values
+    store.remove(0, keys, deferred=True)
+    keys = store.insert_layers(
+        0, np.dstack([image, score, mask.astype(np.float32)]), mask, GRID, pose(0.4, 0.1),
+        time=1.0, deferred=True,
+    )  # fmt: skip
+    assert store.render_dirty(deferred=False) == []
+    assert store.tile((0, 0)).dirty
+    after = store.render_dirty(deferred=True)[0].values
+    moved = (before > 0) != (after > 0)
+    assert moved.sum() >= 2 * 10 * 28  # ten columns left behind, ten newly covered
+    assert not store.tile((0, 0)).dirty
+    # Redrawn again and left: the spill renders it first.
+    store.remove(0, keys, deferred=True)
+    store.insert(0, image, score, mask, GRID, pose(0.2, 0.1), time=2.0, movable=True)
+    store.remove(0, [(0, 0)], deferred=True)
+    (last,) = store.evict_idle(now=10.0)
+    assert not last.values.any()  # the frame taken out shows as taken out
