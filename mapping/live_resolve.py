@@ -24,9 +24,9 @@ stretch:
   held where it is drawn, and so are the closures' keyframes outside the stretch: a
   closure to one of them holds its frame where the keyframe's drawn pose and the
   registration put it;
-- a frame whose fan moved by more than ``redraw_m`` is taken out of its tiles and drawn
-  again at its new pose; the pose published and kept for it is always the pose it is
-  drawn at.
+- a frame whose fan moved by more than ``redraw_m`` from its pose takes the new pose
+  (published at once) and is taken out of its tiles and drawn again there within the
+  redraw budget (``redraws_per_frame``): the drawn map follows the poses, a little later.
 
 The chain then carries on from the re-solved map: its correction is moved so that the
 last frame drawn is where the solution puts it (what the GNSS sees of the chain stays),
@@ -75,8 +75,9 @@ class ResolveParams:
     window_s: float = 600.0
     """Frames drawn longer ago than this are no longer moved (their images are let go)."""
     memory_mb: float = 256.0
-    """Images of drawn frames kept to draw them again (the oldest go first): about
-    0.15 MB a frame on a 5 m fan at 2 cm."""
+    """Images of drawn frames kept to draw them again (the oldest go first): 0.32 MB a
+    frame on a 5 m fan at 2 cm (uint8 image, uint16 score, mask bits), so about 800
+    frames: 80 s of survey at 10 Hz, 160 s at 5 Hz."""
     redraw_m: float = 0.03
     """A frame whose fan moved more than this (its far edge, 5 m out, for a turn) is drawn
     again: one and a half mosaic pixels."""
