@@ -66,19 +66,13 @@ def _first_weakest(
     return _LOWEST_BIT[bits]
 
 
-def quantise_score(score: FloatImage) -> npt.NDArray[np.uint16]:
-    """Scores in (0, 1] to 1..65535 (0 stays 0: an empty slot)."""
-    q = np.rint(np.clip(score, 0.0, 1.0) * 65535.0)
-    return np.where(score > 0.0, np.maximum(q, 1.0), 0.0).astype(np.uint16)
-
-
 def _quantise_valid(score: FloatImage, valid: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint16]:
-    """``quantise_score`` where ``valid`` (scores > 0 there); elsewhere any value."""
+    """Scores in (0, 1] to 1..65535 where ``valid`` (0 is an empty slot, so a valid score
+    too small to quantise is the smallest); elsewhere any value."""
     q = np.multiply(score, np.float32(65535.0))
     np.rint(q, out=q)
     np.clip(q, 0.0, 65535.0, out=q)
     out = q.astype(np.uint16)
-    # A valid score too small to quantise is the smallest, not an empty slot.
     return np.maximum(out, valid.view(np.uint8), out=out)
 
 
