@@ -300,7 +300,7 @@ class Daemon:
             "frames_reblended": stats.frames_reblended,
             "resolves": stats.resolves,
             "frames_redrawn": stats.frames_redrawn,
-            "redraw_wait_mean_s": round(stats.redraw_wait_s / max(stats.frames_redrawn, 1), 1),
+            "redraw_wait_mean_s": round(stats.redraw_wait_mean_s, 1),
             "redraw_wait_max_s": round(stats.redraw_wait_max_s, 1),
             "engine_restarts": mapper.stats.restarts,
             "ms_per_frame": {

@@ -94,9 +94,9 @@ class StreamingParams:
     redraw_render_every_s: float = 6.0
     """Pixels a re-solve's redraws changed are rendered this often: a stretch's redraws
     go on over the same tiles for seconds, and rendered with every refine a pixel is
-    blended again each time. Measured (one run each, quadrats seed 1): render 12.9 ->
-    11.5 ms a frame at 5 Hz; nothing at 2 Hz, where most tiles a redraw touches leave
-    memory, and are rendered then, before the next."""
+    blended again each time. Measured on quadrats seed 1 at 5 Hz (two runs each, against
+    every 1.5 s): render 11.7 -> 10.4 ms a frame; nothing at 2 Hz, where most tiles a
+    redraw touches leave memory, and are rendered then, before the next."""
     evict_after_s: float = 30.0
     """A tile no frame has touched for this long leaves memory."""
     live_registration_res_m: float | None = 0.03
@@ -184,10 +184,14 @@ class StreamStats:
     """Final frames drawn again after a re-solve moved them."""
     redraw_wait_s: float = 0.0
     """Survey time moved frames waited to be drawn again, summed: the drawn map's lag
-    behind the re-solve (the mean is this over ``frames_redrawn``)."""
+    behind the re-solve (``redraw_wait_mean_s`` a frame)."""
     redraw_wait_max_s: float = 0.0
     rejected: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def redraw_wait_mean_s(self) -> float:
+        return self.redraw_wait_s / max(self.frames_redrawn, 1)
 
     def time(self, stage: str, started: float) -> float:
         now = clock.perf_counter()

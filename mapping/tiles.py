@@ -454,7 +454,8 @@ class TileStore:
         tiles that have some; ``deferred``: the pixels redraws changed too)."""
         out = []
         for key, tile in list(self.active.items()):
-            if tile.changed is None and not (deferred and not new_only and tile.dirty):
+            redrawn = deferred and not new_only and tile.deferred is not None
+            if tile.changed is None and not redrawn:
                 continue
             changed, rendered = tile.changed, tile.rendered
             if (

@@ -306,7 +306,7 @@ def replay(
             "frames_reblended": stats.frames_reblended,
             "resolves": stats.resolves,
             "frames_redrawn": stats.frames_redrawn,
-            "redraw_wait_mean_s": round(stats.redraw_wait_s / max(stats.frames_redrawn, 1), 1),
+            "redraw_wait_mean_s": round(stats.redraw_wait_mean_s, 1),
             "redraw_wait_max_s": round(stats.redraw_wait_max_s, 1),
             "ms_per_frame": {
                 k: round(1000 * v / max(stats.frames_received, 1), 3)
