@@ -2,8 +2,9 @@
 
 The same simulated field day (the same boat, seabed, GNSS wander, compass and gyro: the
 simulator draws each from its own stream) pinged at 2 Hz and at 10 Hz, each replayed
-single-stage. Every weight is physical, nothing is weighted per frame, so the two maps
-must draw the seabed in the same place: the seabed points a frame sees are put where the
+single-stage. Every weight is physical, nothing is weighted per frame, and each frame is
+registered against a keyframe (the registrations' errors add up by the distance
+travelled, not by the frame), so the two maps must draw the seabed in the same place: the seabed points a frame sees are put where the
 estimated pose puts them, their error against the truth compared between the runs at
 the same moments.
 """
@@ -75,12 +76,6 @@ def errors(
     return out
 
 
-@pytest.mark.xfail(
-    reason="issue 11 open: measured 4.1 cm RMS apart (p90 5.3 cm; 6.2 cm before loop "
-    "closures were registered on the shared seabed), 3.7 cm after the best rigid motion "
-    "(1.9 cm, 0.02 deg): the two maps differ in shape, not in where they sit on the GNSS",
-    strict=False,
-)
 def test_2hz_and_10hz_logs_of_one_survey_give_one_map(
     errors: dict[float, tuple[Array, Array, Array]],
 ) -> None:
