@@ -4,9 +4,9 @@ The same simulated field day (the same boat, seabed, GNSS wander, compass and gy
 simulator draws each from its own stream) pinged at 2 Hz and at 10 Hz, each replayed
 single-stage. Every weight is physical, nothing is weighted per frame, and each frame is
 registered against a keyframe (the registrations' errors add up by the distance
-travelled, not by the frame), so the two maps must draw the seabed in the same place: the seabed points a frame sees are put where the
-estimated pose puts them, their error against the truth compared between the runs at
-the same moments.
+travelled, not by the frame), so the two maps must draw the seabed in the same place:
+the seabed points a frame sees are put where the estimated pose puts them, their error
+against the truth compared between the runs at the same moments.
 """
 
 from __future__ import annotations
