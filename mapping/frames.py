@@ -225,7 +225,10 @@ class LocalRegistration:
         prior: Array | None,
         odometry: Array | None = None,
     ) -> FrameOutcome:
-        """Register a preprocessed frame against the last accepted one and validate.
+        """Register a preprocessed frame against the keyframe (against the last accepted
+        frame when the keyframe's registration is refused) and validate it; the edge is
+        from the last accepted frame, composed through the keyframe. The outcome's
+        ``registration`` (its covariance, score, deltas) is the keyframe pair's.
 
         prior: the EKF vehicle pose (x, y, heading) at the frame time, or None when the
         filter has not started (the frame is then rejected: it cannot be placed).
