@@ -114,18 +114,23 @@ class RegistrationParams:
     ``keyframe_s`` after it (0: every frame against the previous one). Each frame's
     registration errs by a few millimetres and a few hundredths of a degree, partly the
     same way from one pair to the next: against the previous frame these add up once a
-    frame, so a 10 Hz chain drifted twice a 2 Hz one. Against a keyframe they add up once
-    a keyframe, and the edge from the previous frame is composed through it (the chain
-    from the keyframe to any frame is that frame's one registration). Measured on the
-    registration chain alone, 11 surveys at 2, 5 and 10 Hz, error over 30 s of travel: at
-    10 Hz 24 -> 11 cm and 2.7 -> 0.7 degrees, at 5 Hz 15-16 -> 13-14 cm and 0.9-1.4 ->
-    0.4-0.6 degrees, at 2 Hz unchanged (a frame is about a keyframe apart already). 0.5 m
-    and 1 s measured alike; 0.15 m kept half the gain at 5 Hz."""
+    frame, so over 20 s a 10 Hz chain drifted 2.7 times as far as a 2 Hz one (72 against
+    27 mm). Against a keyframe they add up once a keyframe, and the edge from the previous
+    frame is composed through it (the chain from the keyframe to any frame is that
+    frame's one registration). Measured on the registration chain alone, error over 30 s
+    of travel, no keyframes against 0.3 m and 3 degrees: 10 Hz 24.2 -> 11.1 cm and 2.66 ->
+    0.66 degrees; the 0.15 m/s current at 5 Hz 16.5 -> 13.5 cm, 1.42 -> 0.64 degrees; the
+    farm at 5 Hz 24.2 -> 20.7 cm, 1.83 -> 1.16 degrees. With a 5 degree turn limit on all
+    11 surveys tried (2, 5, 10 Hz): 5 Hz 0.9-1.4 -> 0.4-0.6 degrees but for the farm, 2 Hz
+    unchanged within noise (a frame is about a keyframe apart already); 0.5 m measured
+    like 0.3 m, 0.15 m kept about half the gain at 5 Hz."""
     keyframe_deg: float = 3.0
     """The rotation estimate errs more on larger turns: keyframes 5 degrees apart made
     the farm's U-turns worse than no keyframes (30 s: 2.3 degrees against 1.8), 1 degree
     lost the gain (1.6); 2-3 degrees measured best (farm 0.9-1.2, 10 Hz 1.0-0.7)."""
     keyframe_s: float = 1.0
+    """At 0.3-0.5 m/s the distance comes first; a boat that holds still renews its
+    keyframe each second (longer was not tried)."""
 
 
 @dataclass
