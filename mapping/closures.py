@@ -169,7 +169,9 @@ def select_closures(
     its node poses), as robust constraints.
 
     internal: (n, 3, 3) covariance each node carries that the graph does not know of
-    (two-stage: its drift from its rigid submap's anchor), added to the prediction."""
+    (two-stage: its drift from its rigid submap's anchor), added to the prediction and to
+    the closures' own covariance: a rigid submap cannot bend to a closure at its far end,
+    so a closure that did not know of that drift would turn the whole submap to fit it."""
     report.candidates = len(candidates)
     live = [c for c in candidates if c.hypotheses]
     if not live:
@@ -268,7 +270,9 @@ def select_closures(
     for k, h in chosen:
         c = live[k]
         hyp = c.hypotheses[h]
-        look = _look_covariance(poses, c, params)
+        cov = hyp.covariance + _look_covariance(poses, c, params)
+        if internal is not None:
+            cov = cov + internal[c.i] + internal[c.j]
         constraints.append(
             RelativeConstraint(
                 c.i,
@@ -276,7 +280,7 @@ def select_closures(
                 hyp.relative.forward_m,
                 hyp.relative.starboard_m,
                 hyp.relative.yaw_rad,
-                sqrt_information(hyp.covariance + look),
+                sqrt_information(cov),
                 robust=True,
                 kind="closure",
             )

@@ -136,13 +136,16 @@ class RegistrationParams:
 @dataclass
 class FrameOutcome:
     """What happened to one frame. ``edge`` links it to the previous accepted frame
-    (vehicle frame); ``reason`` says why it was rejected, "" when accepted."""
+    (vehicle frame); ``measured`` is the registration itself, from the frame it was
+    registered against (the keyframe, or the previous accepted frame) to this one;
+    ``reason`` says why it was rejected, "" when accepted."""
 
     index: int
     time: float
     accepted: bool
     reason: str = ""
     edge: Edge | None = None
+    measured: Edge | None = None
     registration: Registration | None = None
     delta_p_m: float = math.nan
     delta_a_deg: float = math.nan
@@ -268,6 +271,9 @@ class LocalRegistration:
             else relative_pose(compose(_ORIGIN, from_key), compose(_ORIGIN, measured))
         )
         outcome.edge = Edge(last.index, index, step.forward_m, step.starboard_m, step.yaw_rad)
+        outcome.measured = Edge(
+            key.index, index, measured.forward_m, measured.starboard_m, measured.yaw_rad
+        )
         p = self.params
         if (
             p.keyframe_m <= 0

@@ -210,6 +210,7 @@ class LiveResolver:
         self.times: dict[int, float] = {}
         self.priors: dict[int, Array] = {}
         self.registrations: dict[int, tuple[int, Edge, Array]] = {}  # j -> (i, edge, W)
+        self.measured: dict[int, tuple[Edge, Array]] = {}  # j -> (keyframe edge, W)
         self.bridges: dict[int, Bridge] = {}
         self.drawn: OrderedDict[int, Drawn] = OrderedDict()
         self.bytes = 0
@@ -248,15 +249,21 @@ class LiveResolver:
         edge: Edge | None,
         sqrt_info: Array | None,
         bridge: Bridge | None = None,
+        measured: Edge | None = None,
+        measured_info: Array | None = None,
     ) -> None:
         """An accepted frame: its navigation prior, its registration to the previous
         accepted frame (with its square-root information) when it has one, and how the
-        chain bridged it when it has not."""
+        chain bridged it when it has not. ``measured``: the registration itself, from the
+        keyframe it was registered against (``FrameOutcome.measured``), which ties the
+        frame when the keyframe is in the solved stretch (``GraphParams.keyframe_edges``)."""
         self.accepted.append(index)
         self.times[index] = time
         self.priors[index] = np.asarray(prior, float).copy()
         if edge is not None and sqrt_info is not None:
             self.registrations[index] = (edge.i, edge, sqrt_info)
+        if measured is not None and measured_info is not None:
+            self.measured[index] = (measured, measured_info)
         if bridge is not None:
             self.bridges[index] = bridge
 
@@ -318,7 +325,15 @@ class LiveResolver:
         for a in range(1, len(nodes)):
             k_prev, k = nodes[a - 1], nodes[a]
             reg = self.registrations.get(k)
-            if reg is not None and reg[0] == k_prev:
+            measured = self.measured.get(k)
+            if reg is not None and reg[0] == k_prev and measured and measured[0].i in position:
+                edge, w = measured
+                constraints.append(
+                    RelativeConstraint(
+                        position[edge.i], a, edge.forward_m, edge.starboard_m, edge.yaw_rad, w
+                    )
+                )
+            elif reg is not None and reg[0] == k_prev:
                 _, edge, w = reg
                 constraints.append(
                     RelativeConstraint(a - 1, a, edge.forward_m, edge.starboard_m, edge.yaw_rad, w)
@@ -408,6 +423,7 @@ class LiveResolver:
             self.times.pop(k, None)
             self.priors.pop(k, None)
             self.registrations.pop(k, None)
+            self.measured.pop(k, None)
             self.bridges.pop(k, None)
         del self.accepted[:cut]
         self.closures = [c for c in self.closures if c.j >= first]

@@ -161,6 +161,12 @@ def single_stage(
     return SingleStageResult(out, _as_edges(nodes, kept), solution, report, summary)
 
 
+def _parents(chain: Sequence[RelativeConstraint], n: int) -> dict[int, RelativeConstraint]:
+    """The chain's constraint into each node from an earlier one (``chain_constraints``
+    gives every node but the first exactly one)."""
+    return {c.j: c for c in chain if c.i < c.j < n}
+
+
 def _rigid_groups(
     chain: Sequence[RelativeConstraint], node_times: Array, seconds: float
 ) -> RigidGroups:
@@ -170,11 +176,13 @@ def _rigid_groups(
     slot = np.floor((node_times - node_times[0]) / seconds).astype(np.int64)
     group = np.unique(slot, return_inverse=True)[1].astype(np.int64).reshape(-1)
     chained = np.zeros((n, 3))
-    by_j = {c.j: c for c in chain if c.j == c.i + 1}
+    parent = _parents(chain, n)
     for k in range(1, n):
-        c = by_j.get(k)
-        step = RelativePose(c.forward_m, c.starboard_m, c.yaw_rad) if c else RelativePose(0, 0, 0)
-        chained[k] = compose(chained[k - 1], step)
+        c = parent.get(k)
+        if c is None:
+            chained[k] = chained[k - 1]
+        else:
+            chained[k] = compose(chained[c.i], RelativePose(c.forward_m, c.starboard_m, c.yaw_rad))
     offsets = np.zeros((n, 3))
     first = np.searchsorted(group, group)  # first node of each node's group
     for k in range(n):
@@ -189,11 +197,19 @@ def _loosen_links(
     """The constraints that join one submap to the next, with the drift the earlier
     submap's frozen chain carries at its end added to their covariance: the submap's
     shape is fixed, its errors are not gone, and a link that did not know of them would
-    hold the next submap to the wrong heading against the gyro and the compass."""
+    hold the next submap to the wrong heading against the gyro and the compass.
+
+    One link a pair of submaps: the one into the later submap's first node. Other frames
+    of it registered against a keyframe of the earlier submap are tied to it through
+    their rigid place (their registrations made that place); links of their own would
+    count the drift they share once each."""
     out = []
+    first = np.searchsorted(rigid.group, rigid.group)
     for c in chain:
         if rigid.group[c.i] == rigid.group[c.j]:
             out.append(c)
+            continue
+        if c.j != first[c.j]:
             continue
         cov = np.linalg.inv(c.sqrt_info.T @ c.sqrt_info) + internal[c.i] + internal[c.j]
         out.append(replace(c, sqrt_info=sqrt_information(cov)))
@@ -208,23 +224,31 @@ def _anchor_priors(priors: Array, rigid: RigidGroups) -> Array:
 
 def _internal_drift(rigid: RigidGroups, chain: Sequence[RelativeConstraint], poses: Array) -> Array:
     """(n, 3, 3) covariance of each node against its submap's anchor: the chained
-    registrations' own (random-walk) errors, which a rigid submap holds at zero. Yaw
-    variance adds up per step; each step's translation variance, plus the lateral
-    effect of the yaw variance over the distance from the anchor."""
+    registrations' own (random-walk) errors, which a rigid submap holds at zero. Variance
+    adds up along the chain's tree from the anchor (a node whose constraint comes from
+    before the anchor: from that node through the anchor's own chain); the translation
+    also takes the lateral effect of the yaw variance over the distance from the anchor."""
     n = rigid.group.size
-    steps = np.zeros((n, 3))
-    for c in chain:
-        if c.j == c.i + 1 and c.j < n:
-            cov = np.linalg.inv(c.sqrt_info.T @ c.sqrt_info)
-            steps[c.j] = np.diag(cov)
+    step = np.zeros((n, 3))
+    parent = np.arange(n) - 1
+    for k, c in _parents(chain, n).items():
+        step[k] = np.diag(np.linalg.inv(c.sqrt_info.T @ c.sqrt_info))
+        parent[k] = c.i
+    total = np.zeros((n, 3))  # from the first node, along the tree
+    for k in range(1, n):
+        total[k] = total[max(parent[k], 0)] + step[k]
     out = np.zeros((n, 3, 3))
     first = np.searchsorted(rigid.group, rigid.group)
+    var = np.zeros((n, 3))
     for k in range(n):
         a = int(first[k])
         if k == a:
             continue
-        var = steps[a + 1 : k + 1].sum(axis=0)
+        p = int(parent[k])
+        # From the anchor to the parent, then the step; a parent before the anchor is
+        # reached back through the anchor's chain.
+        var[k] = step[k] + (var[p] if p >= a else np.abs(total[a] - total[max(p, 0)]))
         distance = float(np.hypot(*(poses[k, :2] - poses[a, :2])))
-        lateral = var[2] * distance**2 / 3.0
-        out[k] = np.diag([var[0] + lateral, var[1] + lateral, var[2]])
+        lateral = var[k, 2] * distance**2 / 3.0
+        out[k] = np.diag([var[k, 0] + lateral, var[k, 1] + lateral, var[k, 2]])
     return out

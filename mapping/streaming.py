@@ -474,19 +474,24 @@ class StreamingEngine:
             return
         assert prior is not None
         stats.frames_mapped += 1
-        sqrt_info = None
+        sqrt_info = measured_info = None
+        graph = self.params.pipeline.single_stage.graph
         if outcome.edge is not None:
             sqrt_info = registration_sqrt_info(
-                outcome,
-                self.mount,
-                self.params.pipeline.single_stage.graph,
-                ping.time - self.times[outcome.edge.i],
+                outcome, self.mount, graph, ping.time - self.times[outcome.edge.i]
             )
-        outcome.registration = None  # the edge is what is kept of it
+        if outcome.measured is not None:
+            measured_info = registration_sqrt_info(
+                outcome, self.mount, graph, ping.time - self.times[outcome.measured.i]
+            )
+        outcome.registration = None  # the edges are what is kept of it
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
         self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
-        self.resolver.add_frame(index, ping.time, prior, outcome.edge, sqrt_info, self._bridged)
+        self.resolver.add_frame(
+            index, ping.time, prior, outcome.edge, sqrt_info, self._bridged,
+            outcome.measured if graph.keyframe_edges else None, measured_info,
+        )  # fmt: skip
         started = stats.time("blending", started)
         self._close_loop(index, ping.time, sonar_frame.image)
         self._take_closures()

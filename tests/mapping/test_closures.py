@@ -92,3 +92,22 @@ def test_a_lone_inconsistent_closure_is_outvoted(solved) -> None:
     kept = select_closures(fusion, solution.poses, candidates, ClosureParams(), report)
     assert len(kept) == len(candidates) - 1
     assert all((k.i, k.j) != (bad.i, bad.j) for k in kept)
+
+
+def test_a_rigid_submaps_drift_loosens_its_closures(solved) -> None:
+    # Two-stage: a frame held rigidly in its submap carries the drift of the submap's
+    # chain from its anchor, which the submap cannot bend to absorb. A closure there is
+    # weighed with that drift, or it would turn the whole submap to fit itself.
+    times, truth, fusion, solution = solved
+    candidates = _candidates(times, truth, [(0.0, 0.4)])
+    plain = select_closures(fusion, solution.poses, candidates, ClosureParams(), ClosureReport())
+    drift = np.diag([0.03**2, 0.03**2, math.radians(0.5) ** 2])
+    internal = np.broadcast_to(drift, (times.size, 3, 3))
+    loose = select_closures(
+        fusion, solution.poses, candidates, ClosureParams(), ClosureReport(), internal
+    )
+    assert len(loose) == len(plain) == len(candidates)
+    for a, b in zip(plain, loose, strict=True):
+        cov_a = np.linalg.inv(a.sqrt_info.T @ a.sqrt_info)
+        cov_b = np.linalg.inv(b.sqrt_info.T @ b.sqrt_info)
+        np.testing.assert_allclose(cov_b, cov_a + 2 * drift, rtol=1e-6, atol=1e-12)

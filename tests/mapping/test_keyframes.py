@@ -18,6 +18,8 @@ import pytest
 
 from mapping.fmt import Registration, RelativePose
 from mapping.frames import LocalRegistration, RegistrationParams, SonarMount, compose, relative_pose
+from mapping.single_stage import _internal_drift, _rigid_groups
+from mapping.survey_graph import GraphParams, chain_constraints
 
 Array = npt.NDArray[np.float64]
 
@@ -118,3 +120,72 @@ def test_a_keyframe_out_of_reach_falls_back_to_the_previous_frame() -> None:
     assert np.all(np.isfinite(chained))
     drift = float(np.hypot(*(chained[-1, :2] - truth[-1, :2])))
     assert drift < 149 * BIAS_M
+
+
+def _outcomes(params: RegistrationParams, n: int = 150) -> tuple[list[Any], Array]:
+    truth = _truth(n)
+    local = LocalRegistration(MOUNT, params=params)
+    local.registrar = _Registrar()  # type: ignore[assignment]
+    outcomes = [
+        local.register(k, k / RATE_HZ, _Frame(MOUNT.sonar_pose(truth[k])), truth[k])  # type: ignore[arg-type]
+        for k in range(n)
+    ]
+    return outcomes, truth
+
+
+def _graph(outcomes: list[Any], truth: Array, params: GraphParams) -> tuple[Any, list[Any]]:
+    n = truth.shape[0]
+    return chain_constraints(
+        np.arange(n) / RATE_HZ,
+        np.ones(n, bool),
+        [o.edge for o in outcomes if o.edge is not None],
+        outcomes,
+        truth,
+        MOUNT,
+        params,
+    )
+
+
+def test_the_graph_holds_each_frame_by_its_own_registration() -> None:
+    # Each frame is tied to the keyframe it was registered against, by that registration:
+    # the edges from the previous frame composed through it share its error, and weighed
+    # as independent measurements they would say the chain is weaker than it is.
+    outcomes, truth = _outcomes(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0))
+    nodes, chain = _graph(outcomes, truth, GraphParams())
+    assert nodes.size == truth.shape[0]
+    assert sorted(c.j for c in chain) == list(range(1, nodes.size))  # one into each node
+    assert all(c.i < c.j and c.kind == "registration" for c in chain)
+    reach = [c.j - c.i for c in chain]
+    assert max(reach) >= 6  # 0.3 m at 4 cm a frame
+    for c in chain:
+        measured = outcomes[c.j].measured
+        assert (c.i, c.forward_m) == (measured.i, measured.forward_m)
+    # Composed along the tree, the frames land where the chain of composed edges puts them.
+    placed = np.zeros_like(truth)
+    placed[0] = truth[0]
+    for c in sorted(chain, key=lambda c: c.j):
+        placed[c.j] = compose(placed[c.i], RelativePose(c.forward_m, c.starboard_m, c.yaw_rad))
+    chained, _ = _run(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0), _Registrar())
+    np.testing.assert_allclose(placed, chained, atol=1e-9)
+    # Without keyframe edges: the previous frame's composed edge, as before.
+    _, consecutive = _graph(outcomes, truth, GraphParams(keyframe_edges=False))
+    assert all(c.j == c.i + 1 for c in consecutive)
+
+
+def test_a_two_stage_submap_drifts_by_its_keyframes_not_its_frames() -> None:
+    # A rigid submap's drift from its anchor (what loosens its links and its closures)
+    # adds up once a keyframe: the frames of one keyframe do not each add their own.
+    outcomes, truth = _outcomes(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0))
+    nodes, chain = _graph(outcomes, truth, GraphParams())
+    times = np.arange(nodes.size) / RATE_HZ
+    rigid = _rigid_groups(chain, times, 6.0)
+    drift = _internal_drift(rigid, chain, truth)
+    _, consecutive = _graph(outcomes, truth, GraphParams(keyframe_edges=False))
+    per_frame = _internal_drift(_rigid_groups(consecutive, times, 6.0), consecutive, truth)
+    last = 59  # the first submap's last frame, 5.9 s from its anchor
+    assert rigid.group[last] == 0 and rigid.group[last + 1] == 1
+    assert drift[last, 2, 2] < 0.35 * per_frame[last, 2, 2]
+    # The submaps' rigid shapes are the same either way (the composed edges telescope).
+    np.testing.assert_allclose(
+        rigid.offsets, _rigid_groups(consecutive, times, 6.0).offsets, atol=1e-9
+    )
