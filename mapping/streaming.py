@@ -490,7 +490,7 @@ class StreamingEngine:
         self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
         self.resolver.add_frame(
             index, ping.time, prior, outcome.edge, sqrt_info, self._bridged,
-            outcome.measured if graph.keyframe_edges else None, measured_info,
+            outcome.measured if self.params.resolve.keyframe_edges else None, measured_info,
         )  # fmt: skip
         started = stats.time("blending", started)
         self._close_loop(index, ping.time, sonar_frame.image)

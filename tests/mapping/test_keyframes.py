@@ -151,7 +151,7 @@ def test_the_graph_holds_each_frame_by_its_own_registration() -> None:
     # the edges from the previous frame composed through it share its error, and weighed
     # as independent measurements they would say the chain is weaker than it is.
     outcomes, truth = _outcomes(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0))
-    nodes, chain = _graph(outcomes, truth, GraphParams())
+    nodes, chain = _graph(outcomes, truth, GraphParams(keyframe_edges=True))
     assert nodes.size == truth.shape[0]
     assert sorted(c.j for c in chain) == list(range(1, nodes.size))  # one into each node
     assert all(c.i < c.j and c.kind == "registration" for c in chain)
@@ -167,8 +167,8 @@ def test_the_graph_holds_each_frame_by_its_own_registration() -> None:
         placed[c.j] = compose(placed[c.i], RelativePose(c.forward_m, c.starboard_m, c.yaw_rad))
     chained, _ = _run(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0), _Registrar())
     np.testing.assert_allclose(placed, chained, atol=1e-9)
-    # Without keyframe edges: the previous frame's composed edge, as before.
-    _, consecutive = _graph(outcomes, truth, GraphParams(keyframe_edges=False))
+    # Without keyframe edges (the default): the previous frame's composed edge.
+    _, consecutive = _graph(outcomes, truth, GraphParams())
     assert all(c.j == c.i + 1 for c in consecutive)
 
 
@@ -176,11 +176,11 @@ def test_a_two_stage_submap_drifts_by_its_keyframes_not_its_frames() -> None:
     # A rigid submap's drift from its anchor (what loosens its links and its closures)
     # adds up once a keyframe: the frames of one keyframe do not each add their own.
     outcomes, truth = _outcomes(RegistrationParams(keyframe_m=0.3, keyframe_deg=5.0))
-    nodes, chain = _graph(outcomes, truth, GraphParams())
+    nodes, chain = _graph(outcomes, truth, GraphParams(keyframe_edges=True))
     times = np.arange(nodes.size) / RATE_HZ
     rigid = _rigid_groups(chain, times, 6.0)
     drift = _internal_drift(rigid, chain, truth)
-    _, consecutive = _graph(outcomes, truth, GraphParams(keyframe_edges=False))
+    _, consecutive = _graph(outcomes, truth, GraphParams())
     per_frame = _internal_drift(_rigid_groups(consecutive, times, 6.0), consecutive, truth)
     last = 59  # the first submap's last frame, 5.9 s from its anchor
     assert rigid.group[last] == 0 and rigid.group[last + 1] == 1

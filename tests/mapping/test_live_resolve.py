@@ -69,7 +69,7 @@ def _resolver(
                     0.02 + 0.06 * span, math.radians(0.5 + 0.5 * span),
                 )  # fmt: skip
         measured = info = None
-        if keyframe_every and edge is not None:
+        if keyframe_every and edge is not None and c is not None:
             key = (k - 1) // keyframe_every * keyframe_every
             pose = np.zeros(3)
             for step in constraints[key:k]:
