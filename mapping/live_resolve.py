@@ -264,7 +264,7 @@ class LiveResolver:
         accepted frame (with its square-root information) when it has one, and how the
         chain bridged it when it has not. ``measured``: the registration itself, from the
         keyframe it was registered against (``FrameOutcome.measured``), which ties the
-        frame when the keyframe is in the solved stretch (``GraphParams.keyframe_edges``)."""
+        frame when the keyframe is in the solved stretch (``ResolveParams.keyframe_edges``)."""
         self.accepted.append(index)
         self.times[index] = time
         self.priors[index] = np.asarray(prior, float).copy()
