@@ -60,10 +60,10 @@ class GraphParams:
     10.1 (1.8 / 4.9 / 9.2 / 11.8), yaw 0.11 / 0.31 / 0.39 / 0.36 degrees (0.07 / 0.20 /
     0.37 / 0.48): the error levels off at half a wave period. A model that levels off
     with it (sigma^2 = cap^2 (1 - exp(-(rate dt / cap)^2))) fitted every span within 10 %
-    but made the four surveys no better (single-stage 3.1-4.5 cm against 3.1-3.9, the
-    live map on the 2 Hz one 15.4 cm against 13.0): per ping, the chop's error is shared
-    by every registration of that ping and cancels along a chain, which weights per edge
-    cannot say either way."""
+    but made four surveys no better (keyframe edges on: single-stage 3.1-4.5 cm against
+    3.1-3.9, the live map on the 2 Hz one 15.4 cm against 13.0): per ping, the chop's
+    error is shared by every registration of that ping and cancels along a chain, which
+    weights per edge cannot say either way."""
     motion_sigma_rps: float = math.radians(0.53)
     odometry_sigma_m: float = 0.02
     """Odometry bridge: sigma at zero span, growing by ``odometry_velocity_sigma_mps`` a
@@ -82,10 +82,10 @@ class GraphParams:
     as independent measurements, those edges tell the solver the chain across a
     keyframe's frames is several times weaker than it is (six frames a keyframe at 10
     Hz). Measured on the 22 surveys of the matrix, single-stage: lanes 3.5 cm at the
-    median either way, but 10.5 cm against 3.7 on the 0.12 m/s current with PX4: the
-    last lane's tail, weaker against the gyro's wandering bias with the composed edges
-    gone, bent by 1.2 degrees, and the closure choice took a ripple-period peak there.
-    Off until that is understood; the live re-solve uses them
+    median with them, but 10.5 cm against 3.7 on the 0.12 m/s current with PX4, where
+    the last lane's tail bent by 1.2 degrees (the gyro bias walked ten times as far) and
+    a closure about 22 cm off (a ripple period) was taken there. Why the tail is weaker
+    in that graph is not yet known: off until it is. The live re-solve uses them
     (``ResolveParams.keyframe_edges``)."""
     sonar_latency_s: float = 0.05
     """Prior of the time from a ping's acquisition to its stamp (for the gyro and
