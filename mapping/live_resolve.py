@@ -414,7 +414,8 @@ class LiveResolver:
         pose and its one registration, which only it uses: solved with it, it sits where
         the registration puts it, bar what its own fixes and compass readings would
         add, and those are taken between the frames kept either side of it (at most a
-        keyframe, a second, apart). At 10 Hz six frames in seven are leaves."""
+        keyframe, a second, apart). At 0.4 m/s with keyframes 0.3 m apart, about six
+        frames in seven at 10 Hz."""
         n = times.size
         into: dict[int, RelativeConstraint] = {}
         used = {0, n - 1, *(q.k for q in priors)}

@@ -236,7 +236,7 @@ def _internal_drift(rigid: RigidGroups, chain: Sequence[RelativeConstraint], pos
         parent[k] = c.i
     total = np.zeros((n, 3))  # from the first node, along the tree
     for k in range(1, n):
-        total[k] = total[max(parent[k], 0)] + step[k]
+        total[k] = total[parent[k]] + step[k]
     out = np.zeros((n, 3, 3))
     first = np.searchsorted(rigid.group, rigid.group)
     var = np.zeros((n, 3))

@@ -480,7 +480,7 @@ class StreamingEngine:
             sqrt_info = registration_sqrt_info(
                 outcome, self.mount, graph, ping.time - self.times[outcome.edge.i]
             )
-        if outcome.measured is not None:
+        if outcome.measured is not None and self.params.resolve.keyframe_edges:
             measured_info = registration_sqrt_info(
                 outcome, self.mount, graph, ping.time - self.times[outcome.measured.i]
             )
@@ -490,7 +490,7 @@ class StreamingEngine:
         self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
         self.resolver.add_frame(
             index, ping.time, prior, outcome.edge, sqrt_info, self._bridged,
-            outcome.measured if self.params.resolve.keyframe_edges else None, measured_info,
+            outcome.measured, measured_info,
         )  # fmt: skip
         started = stats.time("blending", started)
         self._close_loop(index, ping.time, sonar_frame.image)

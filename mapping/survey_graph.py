@@ -80,8 +80,8 @@ class GraphParams:
     through it (``FrameOutcome.edge``). A composed edge carries two registrations'
     errors, its frame's and the previous frame's, which cancel along the chain: weighed
     as independent measurements, those edges tell the solver the chain across a
-    keyframe's frames is several times weaker than it is (six frames a keyframe at 10
-    Hz). Measured on the 22 surveys of the matrix, single-stage: lanes 3.5 cm at the
+    keyframe's frames is several times weaker than it is (about six frames a keyframe at
+    10 Hz and 0.4 m/s). Measured on the 22 surveys of the matrix, single-stage: lanes 3.5 cm at the
     median with them, but 10.5 cm against 3.7 on the 0.12 m/s current with PX4, where
     the last lane's tail bent by 1.2 degrees (the gyro bias walked ten times as far) and
     a closure about 22 cm off (a ripple period) was taken there. Why the tail is weaker
