@@ -211,7 +211,8 @@ def test_daemon_mapped_live(run: Run) -> None:
 
 
 @pytest.mark.xfail(
-    reason="live-map accuracy, being improved in mapping/streaming.py and live_resolve.py: "
+    reason="near its bound: the live track of a daemon run (its timing varies) on a 30 s "
+    "survey against the survey-end result: "
     "quadrats seed 11, 150 pings: live vs survey-end p50 0.35 m, p90 0.52 m, max 0.72 m "
     "before the live re-solve, p50 0.40 m, p90 0.475 m, max 0.50 m after it (bound p90 "
     "< 0.5 m): where a 30 s survey sits on the GNSS, live and at its end",

@@ -172,8 +172,9 @@ def test_survey_end_pass_equals_single_stage(recorded: Recorded) -> None:
 
 
 @pytest.mark.xfail(
-    reason="issue 11 open: reused live registrations put the shape 2.4 cm p90 off offline "
-    "(quadrats seed 3, 100 pings; bound 1.5 cm)",
+    reason="reused live registrations are weighed with fixed sigmas (the streaming engine "
+    "does not carry FrameOutcome.registration): the shape 2.4 cm p90 off offline "
+    "(quadrats seed 3, 100 pings; bound 1.5 cm). Off by default: the pass registers again",
     strict=False,
 )
 def test_survey_end_pass_reusing_live_registrations_keeps_the_shape(recorded: Recorded) -> None:
