@@ -51,7 +51,7 @@ def test_only_the_best_candidates_are_kept_and_a_moved_frame_follows_its_pose() 
         store.insert(index, image, score, mask, GRID, pose(0.2, 0.1), time=float(index))
     tile = store.tile((0, 0))
     centre = (40, 25)
-    assert sorted(tile.frame[(slice(None), *centre)].tolist()) == [1, 2]
+    assert sorted(tile.frame[centre].tolist()) == [1, 2]
     first = store.render((0, 0))
     # Frame 2 moves 10 cm east: take it out and put it back there; the tile's version grows.
     store.remove(2, [(0, 0)])

@@ -1,0 +1,191 @@
+"""Compiled per-pixel loops of the tiles (numba): what numpy can only say with a dozen
+whole-stack temporaries a call.
+
+A tile keeps, per pixel, ``N`` candidate slots, contiguous (``mapping.tiles``: stacks
+(rows, cols, N)). Offering a frame's pixel, taking a frame out and blending a pixel's
+candidates each visit the pixel's N slots once here; numpy needed a whole-stack
+temporary for every step (the weakest
+slot, its first index, the comparison, the masked sorts of the median and the MAD).
+
+The results are those of the numpy expressions they replace: the candidate updates
+exactly (integers), the blend to float32 rounding (its sums are taken in float64 here,
+pairwise in float32 there), which moves a rendered grey level by one on a few pixels in
+a hundred thousand (``tests/mapping/test_kernels.py``).
+
+Compiled on first use and cached on disk next to this file (``cache=True``; numba falls
+back to the user's cache folder where that is read-only), so a daemon pays the compile
+once per installation, not per start.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+NO_FRAME = 0xFFFF
+
+U8 = npt.NDArray[np.uint8]
+U16 = npt.NDArray[np.uint16]
+F32 = npt.NDArray[np.float32]
+Mask = npt.NDArray[np.bool_]
+Index = npt.NDArray[np.intp]
+
+
+@numba.njit(cache=True, nogil=True)
+def offer(
+    score: U16,
+    intensity: U8,
+    frame: U16,
+    r0: int,
+    c0: int,
+    new_score: U16,
+    new_value: U8,
+    valid: Mask,
+    tag: int,
+) -> Mask:
+    """Offer a frame's pixels to a tile's candidate stacks ((rows, cols, N) each) over
+    the box at (r0, c0) the size of ``new_score``: where ``valid`` and the new score
+    beats the pixel's weakest candidate, the candidate goes into the first slot holding
+    that weakest one. Returns where it went in (the pixels to render again)."""
+    n = score.shape[2]
+    rows, cols = new_score.shape
+    better = np.zeros((rows, cols), np.bool_)
+    for i in range(rows):
+        r = r0 + i
+        for j in range(cols):
+            if not valid[i, j]:
+                continue
+            c = c0 + j
+            slots = score[r, c]
+            weakest = slots[0]
+            slot = 0
+            for k in range(1, n):
+                if slots[k] < weakest:
+                    weakest = slots[k]
+                    slot = k
+            q = new_score[i, j]
+            if q > weakest:
+                slots[slot] = q
+                intensity[r, c, slot] = new_value[i, j]
+                frame[r, c, slot] = tag
+                better[i, j] = True
+    return better
+
+
+@numba.njit(cache=True, nogil=True)
+def take_out(score: U16, frame: U16, r0: int, r1: int, c0: int, c1: int, tag: int) -> Mask:
+    """Empty the slots ``tag`` holds in the box rows r0:r1, cols c0:c1 (score 0, no
+    frame); returns the pixels it held (to render again)."""
+    n = score.shape[2]
+    hit = np.zeros((r1 - r0, c1 - c0), np.bool_)
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            tags = frame[r, c]
+            for k in range(n):
+                if tags[k] == tag:
+                    score[r, c, k] = 0
+                    tags[k] = NO_FRAME
+                    hit[r - r0, c - c0] = True
+    return hit
+
+
+@numba.njit(cache=True, nogil=True)
+def _median_of(values: npt.NDArray[np.float32], count: int) -> np.float32:
+    """The median of values[:count] (sorted in place, insertion sort: count <= N)."""
+    for a in range(1, count):
+        x = values[a]
+        b = a - 1
+        while b >= 0 and values[b] > x:
+            values[b + 1] = values[b]
+            b -= 1
+        values[b + 1] = x
+    low = (count - 1) // 2
+    high = count // 2
+    return np.float32(0.5) * (values[low] + values[high])
+
+
+@numba.njit(cache=True, nogil=True)
+def blend(
+    intensity: U8,
+    score: U16,
+    rows: Index,
+    cols: Index,
+    weight_lut: F32,
+    rho: float,
+    eta: float,
+    top_n: int,
+) -> tuple[U8, Mask]:
+    """The paper's robust blend (``mapping.blend.robust_blend``, Eq. 11) of the pixels
+    (rows[i], cols[i]) of a tile's candidate stacks ((rows, cols, N)): candidates at
+    least ``rho`` times the best score, the ``top_n`` best of them, those within ``eta``
+    MADs of their median, averaged with weights s^gamma (``weight_lut`` over quantised
+    scores).
+    Returns the grey values (1..255; 0 where nothing is left) and where there were."""
+    n = score.shape[2]
+    count_px = rows.shape[0]
+    out = np.zeros(count_px, np.uint8)
+    covered = np.zeros(count_px, np.bool_)
+    inv_score = np.float32(1.0 / 65535.0)
+    inv_value = np.float32(1.0 / 255.0)
+    rho32 = np.float32(rho)
+    eta32 = np.float32(eta)
+    tiny = np.float32(1e-6)
+    s = np.empty(n, np.float32)
+    v = np.empty(n, np.float32)
+    kept = np.empty(n, np.int64)
+    buf = np.empty(n, np.float32)
+    dev = np.empty(n, np.float32)
+    for p in range(count_px):
+        r = rows[p]
+        c = cols[p]
+        best = np.float32(0.0)
+        for k in range(n):
+            s[k] = np.float32(score[r, c, k]) * inv_score
+            if s[k] > best:
+                best = s[k]
+        if best <= 0.0:
+            continue
+        floor = rho32 * best
+        m = 0
+        for k in range(n):
+            if s[k] > 0.0 and s[k] >= floor:
+                kept[m] = k
+                m += 1
+        if m > top_n:
+            # The top_n best scores of the kept (ties: the earlier slot first).
+            for a in range(1, m):
+                x = kept[a]
+                b = a - 1
+                while b >= 0 and s[kept[b]] < s[x]:
+                    kept[b + 1] = kept[b]
+                    b -= 1
+                kept[b + 1] = x
+            m = top_n
+        for a in range(m):
+            v[kept[a]] = np.float32(intensity[r, c, kept[a]]) * inv_value
+            buf[a] = v[kept[a]]
+        median = _median_of(buf, m)
+        for a in range(m):
+            dev[a] = abs(v[kept[a]] - median)
+            buf[a] = dev[a]
+        mad = _median_of(buf, m)
+        limit = eta32 * mad
+        total = 0.0
+        weighted = 0.0
+        for a in range(m):
+            if dev[a] <= limit or mad <= tiny:
+                k = kept[a]
+                w = np.float64(weight_lut[score[r, c, k]])
+                total += w
+                weighted += w * np.float64(v[k])
+        if total > 0.0:
+            blended = np.float32(weighted / total)
+            level = np.rint(blended * np.float32(254.0)) + np.float32(1.0)
+            if level < 1.0:
+                level = np.float32(1.0)
+            elif level > 255.0:
+                level = np.float32(255.0)
+            out[p] = np.uint8(level)
+            covered[p] = True
+    return out, covered

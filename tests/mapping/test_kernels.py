@@ -1,0 +1,111 @@
+"""The compiled tile loops give what the numpy expressions they replaced give."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapping import kernels
+from mapping.blend import BlendParams, robust_blend
+
+N, SIZE = 16, 64
+
+
+def _stacks(rng: np.random.Generator, fill: float) -> tuple[np.ndarray, ...]:
+    """Candidate stacks (rows, cols, N) with ``fill`` of the slots taken, scores with many
+    ties (the quantised scores of a real tile repeat)."""
+    shape = (SIZE, SIZE, N)
+    taken = rng.random(shape) < fill
+    score = np.where(taken, rng.integers(1, 400, shape) * 160, 0).astype(np.uint16)
+    intensity = rng.integers(0, 256, shape).astype(np.uint8)
+    frame = np.where(taken, rng.integers(0, 5, shape), 0xFFFF).astype(np.uint16)
+    return score, intensity, frame
+
+
+def _offer_numpy(score, intensity, frame, r0, c0, new_score, new_value, valid, tag):
+    """The update as tiles.py made it with numpy before the kernel."""
+    rows_n, cols_n = new_score.shape
+    box = (slice(r0, r0 + rows_n), slice(c0, c0 + cols_n))
+    weakest = score[box].min(axis=2)
+    better = valid & (new_score > weakest)
+    rows, cols = np.nonzero(better)
+    for r, c in zip(rows, cols, strict=True):
+        slot = int(np.argmax(score[r0 + r, c0 + c] == weakest[r, c]))  # the first
+        score[r0 + r, c0 + c, slot] = new_score[r, c]
+        intensity[r0 + r, c0 + c, slot] = new_value[r, c]
+        frame[r0 + r, c0 + c, slot] = tag
+    return better
+
+
+@pytest.mark.parametrize("fill", [0.0, 0.4, 1.0])
+def test_offering_a_frame_fills_the_first_weakest_slot(fill: float) -> None:
+    rng = np.random.default_rng(1)
+    score, intensity, frame = _stacks(rng, fill)
+    r0, c0, rows, cols = 5, 9, 40, 50
+    new_score = (rng.integers(1, 400, (rows, cols)) * 160).astype(np.uint16)
+    new_value = rng.integers(0, 256, (rows, cols)).astype(np.uint8)
+    valid = rng.random((rows, cols)) < 0.8
+    expected = [a.copy() for a in (score, intensity, frame)]
+    want = _offer_numpy(*expected, r0, c0, new_score, new_value, valid, 7)
+    got = kernels.offer(score, intensity, frame, r0, c0, new_score, new_value, valid, 7)
+    np.testing.assert_array_equal(got, want)
+    assert want.any() and (fill == 0.0 or not want.all())
+    for a, b in zip((score, intensity, frame), expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_taking_a_frame_out_empties_its_slots_and_only_them() -> None:
+    rng = np.random.default_rng(2)
+    score, _, frame = _stacks(rng, 0.7)
+    want_score, want_frame = score.copy(), frame.copy()
+    box = (slice(3, 50), slice(10, 60))
+    hit = want_frame[box] == 3
+    want_score[box][hit] = 0
+    want_frame[box][hit] = 0xFFFF
+    got = kernels.take_out(score, frame, 3, 50, 10, 60, 3)
+    np.testing.assert_array_equal(got, hit.any(axis=2))
+    np.testing.assert_array_equal(score, want_score)
+    np.testing.assert_array_equal(frame, want_frame)
+    assert (frame == 3).sum() > 0  # outside the box it stays
+
+
+@pytest.mark.parametrize("fill", [0.1, 0.5, 1.0])
+def test_the_compiled_blend_renders_what_the_paper_blend_renders(fill: float) -> None:
+    """Grey levels equal but for float32 rounding (sums in float64 here): within one
+    level everywhere, equal on all but a few pixels in ten thousand."""
+    rng = np.random.default_rng(3)
+    score, intensity, _ = _stacks(rng, fill)
+    # Outliers among similar values, as a pixel seen by many frames has.
+    base = rng.integers(40, 200, (SIZE, SIZE, 1))
+    similar = np.clip(base + rng.normal(0, 6, (SIZE, SIZE, N)), 0, 255)
+    intensity = np.where(rng.random((SIZE, SIZE, N)) < 0.8, similar, intensity).astype(np.uint8)
+    params = BlendParams()
+    lut = ((np.arange(65536) / 65535.0) ** params.gamma).astype(np.float32)
+    rows, cols = np.nonzero(np.ones((SIZE, SIZE), bool))
+    values = intensity[rows, cols].astype(np.float32) * np.float32(1 / 255)
+    quantised = score[rows, cols]
+    blended, covered = robust_blend(
+        values, quantised.astype(np.float32) * np.float32(1 / 65535), params, lut[quantised]
+    )
+    want = np.clip(np.rint(blended * 254.0) + 1.0, 1, 255).astype(np.uint8)
+    want[~covered] = 0
+    got, got_covered = kernels.blend(
+        intensity, score, rows, cols, lut, params.rho, params.eta, params.top_n
+    )
+    np.testing.assert_array_equal(got_covered, covered)
+    assert np.abs(got.astype(int) - want.astype(int)).max() <= 1
+    assert np.mean(got != want) < 1e-3
+    assert covered.any()
+
+
+def test_the_top_n_of_a_wider_stack_are_the_best_scores() -> None:
+    """With more slots than ``top_n`` only the best scores are blended."""
+    score = np.zeros((1, 1, 4), np.uint16)
+    intensity = np.zeros((1, 1, 4), np.uint8)
+    score[0, 0] = [60000, 65000, 62000, 64000]
+    intensity[0, 0] = [10, 200, 10, 200]
+    lut = np.ones(65536, np.float32)
+    rows = cols = np.zeros(1, np.intp)
+    got, covered = kernels.blend(intensity, score, rows, cols, lut, 0.5, 2.7, 2)
+    assert covered[0]
+    assert got[0] == round(200 / 255 * 254) + 1
