@@ -46,7 +46,9 @@ def test_offering_a_frame_fills_the_first_weakest_slot(fill: float) -> None:
     new_value = rng.integers(0, 256, (rows, cols)).astype(np.uint8)
     valid = rng.random((rows, cols)) < 0.8
     expected = [a.copy() for a in (score, intensity, frame)]
-    want = _offer_numpy(*expected, r0, c0, new_score, new_value, valid, 7)
+    want = _offer_numpy(
+        expected[0], expected[1], expected[2], r0, c0, new_score, new_value, valid, 7
+    )
     got = kernels.offer(score, intensity, frame, r0, c0, new_score, new_value, valid, 7)
     np.testing.assert_array_equal(got, want)
     assert want.any() and (fill == 0.0 or not want.all())
