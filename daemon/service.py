@@ -56,6 +56,7 @@ from daemon.survey import (
 )
 from drivers.mavlink.link import MavlinkLink
 from drivers.oculus.link import OculusLink
+from mapping import kernels
 from mapping.samples import GnssFix, NavSample, Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
 from seamap.config import SiteConfig
@@ -99,6 +100,7 @@ class Daemon:
     async def run(self) -> int:
         session_config(self.config.zenoh)  # a malformed [zenoh] is a start-up error
         self._prepare_state_dir()
+        kernels.warm()  # the tiles' compiled loops, before the first ping needs them
         loop = asyncio.get_running_loop()
         self.publisher = ZenohPublisher(
             self.config.daemon.vehicle, surveys_dir(self.state_dir), loop, self._control

@@ -19,11 +19,23 @@ once per installation, not per start.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 import numpy.typing as npt
 
 NO_FRAME = 0xFFFF
+
+
+def _compiled(function: Any) -> Any:
+    """``numba.njit``, cached on disk where numba finds a writable cache folder (next to
+    this file, ``NUMBA_CACHE_DIR``, or the user's cache); compiled at each start where it
+    finds none (a read-only installation run by a user without a home), not an error."""
+    try:
+        return numba.njit(cache=True, nogil=True)(function)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return numba.njit(nogil=True)(function)
 
 U8 = npt.NDArray[np.uint8]
 U16 = npt.NDArray[np.uint16]
@@ -32,7 +44,7 @@ Mask = npt.NDArray[np.bool_]
 Index = npt.NDArray[np.intp]
 
 
-@numba.njit(cache=True, nogil=True)
+@_compiled
 def offer(
     score: U16,
     intensity: U8,
@@ -73,7 +85,7 @@ def offer(
     return better
 
 
-@numba.njit(cache=True, nogil=True)
+@_compiled
 def take_out(score: U16, frame: U16, r0: int, r1: int, c0: int, c1: int, tag: int) -> Mask:
     """Empty the slots ``tag`` holds in the box rows r0:r1, cols c0:c1 (score 0, no
     frame); returns the pixels it held (to render again).
@@ -98,7 +110,7 @@ def take_out(score: U16, frame: U16, r0: int, r1: int, c0: int, c1: int, tag: in
     return hit
 
 
-@numba.njit(cache=True, nogil=True)
+@_compiled
 def _median_of(values: npt.NDArray[np.float32], count: int) -> np.float32:
     """The median of values[:count] (sorted in place, insertion sort: count <= N)."""
     for a in range(1, count):
@@ -113,7 +125,7 @@ def _median_of(values: npt.NDArray[np.float32], count: int) -> np.float32:
     return np.float32(0.5) * (values[low] + values[high])
 
 
-@numba.njit(cache=True, nogil=True)
+@_compiled
 def blend(
     intensity: U8,
     score: U16,
@@ -197,3 +209,17 @@ def blend(
             out[p] = np.uint8(level)
             covered[p] = True
     return out, covered
+
+
+def warm() -> None:
+    """Compile (or load from the cache) every loop on a tiny tile, so that the first
+    frame does not pay it: about 2 s the first time on this machine, 0.3 s from the
+    cache. The daemon calls it at start-up."""
+    score = np.zeros((2, 2, 4), np.uint16)
+    intensity = np.zeros((2, 2, 4), np.uint8)
+    frame = np.full((2, 2, 4), NO_FRAME, np.uint16)
+    ones = np.ones((2, 2), np.uint16)
+    offer(score, intensity, frame, 0, 0, ones, ones.astype(np.uint8), ones > 0, 1)
+    rows = cols = np.zeros(1, np.intp)
+    blend(intensity, score, rows, cols, np.ones(65536, np.float32), 0.68, 2.7, 4)
+    take_out(score, frame, 0, 2, 0, 2, 1)

@@ -111,3 +111,19 @@ def test_the_top_n_of_a_wider_stack_are_the_best_scores() -> None:
     got, covered = kernels.blend(intensity, score, rows, cols, lut, 0.5, 2.7, 2)
     assert covered[0]
     assert got[0] == round(200 / 255 * 254) + 1
+
+
+def test_a_loop_numba_cannot_cache_is_compiled_all_the_same() -> None:
+    """Where numba finds no folder to cache in (a read-only installation run by a user
+    without a home), the loops are compiled at each start instead of failing to import.
+    A function from a string has no file to cache next to: the same refusal."""
+    namespace: dict[str, object] = {}
+    exec(compile("def double(x):\n    return 2 * x\n", "<string>", "exec"), namespace)
+    double = kernels._compiled(namespace["double"])
+    assert double(21) == 42
+
+
+def test_warm_compiles_every_loop() -> None:
+    kernels.warm()
+    for loop in (kernels.offer, kernels.take_out, kernels.blend):
+        assert loop.signatures  # compiled (or loaded) for the tiles' types
