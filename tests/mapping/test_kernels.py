@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -123,7 +127,29 @@ def test_a_loop_numba_cannot_cache_is_compiled_all_the_same() -> None:
     assert double(21) == 42
 
 
-def test_warm_compiles_every_loop() -> None:
-    kernels.warm()
-    for loop in (kernels.offer, kernels.take_out, kernels.blend):
-        assert loop.signatures  # compiled (or loaded) for the tiles' types
+def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
+    """In a fresh process (here the other tests have compiled them already), ``warm``
+    leaves every loop compiled for the types the tiles call it with, so that the first
+    frame does not compile."""
+    code = (
+        "from mapping import kernels\n"
+        "loops = (kernels.offer, kernels.take_out, kernels.blend)\n"
+        "assert not any(loop.signatures for loop in loops)\n"
+        "kernels.warm()\n"
+        "warmed = [len(loop.signatures) for loop in loops]\n"
+        "from tests.mapping.test_tiles import GRID, TILES, frame, pose\n"
+        "from mapping.tiles import TileStore\n"
+        "store = TileStore(TILES)\n"
+        "image, score, mask = frame(0.5)\n"
+        "keys = store.insert(1, image, score, mask, GRID, pose(0.2, 0.1), time=0.0)\n"
+        "store.render_dirty()\n"
+        "store.remove(1, keys)\n"
+        "print(warmed, [len(loop.signatures) for loop in loops])\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    # One signature each, and the tiles' own calls needed no other.
+    assert done.stdout.strip() == "[1, 1, 1] [1, 1, 1]"
