@@ -75,6 +75,9 @@ class BenchResult:
     frames_rejected: int
     frames_skipped: int
     memory_samples: list[tuple[int, float]] = field(default_factory=list)
+    """(frames so far, RSS in MB) every 200 frames and at the end."""
+    spill_written_mb: float = 0.0
+    """What the live engine wrote to its tile spill (the daemon's disk traffic)."""
     final_pass_s: float | None = None
 
     @property
@@ -107,6 +110,8 @@ class BenchResult:
             "tiles_published": self.tiles_published,
             "stages": self.stages_ms,
             "final_pass_s": self.final_pass_s,
+            "spill_written_mb": self.spill_written_mb,
+            "memory_samples": [[frames, rss] for frames, rss in self.memory_samples],
         }
 
 
@@ -203,6 +208,7 @@ def run_bench(
         final_spill = DiskSpill(Path(spill_dir.name) / "final")
         engine.finish(pings_again, spill=final_spill)
         final_s = time.perf_counter() - started
+    spill_written = spill.bytes_written / 2**20
     spill_dir.cleanup()
     lat = np.array(latencies) if latencies else np.array([math.nan])
     return BenchResult(
@@ -223,6 +229,7 @@ def run_bench(
         frames_rejected=stats.frames_rejected,
         frames_skipped=stats.frames_skipped,
         memory_samples=memory,
+        spill_written_mb=spill_written,
         final_pass_s=final_s,
     )
 
@@ -257,7 +264,38 @@ def format_table(result: BenchResult) -> str:
         f"{j['peak_rss_mb']:.0f} MB",
         f"  memory growth            {_growth(j['rss_growth_mb_per_1000_frames'])}",
         f"  tiles published          {j['tiles_published']}",
+        f"  tile spill written       {j['spill_written_mb']:.0f} MB",
     ]
     if result.final_pass_s is not None:
         lines.append(f"  survey-end pass          {result.final_pass_s:.1f} s")
     return "\n".join(lines)
+
+
+def plot_memory(result: BenchResult, path: Path) -> None:
+    """The memory curve (RSS against frames) as a PNG, with the growth fitted to its
+    second half."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    frames = [m[0] for m in result.memory_samples]
+    rss = [m[1] for m in result.memory_samples]
+    figure, axes = plt.subplots(figsize=(8, 4.5), dpi=100)
+    try:
+        axes.plot(frames, rss, lw=1.2, label="resident memory (RSS)")
+        axes.axhline(result.peak_rss_mb, color="grey", ls=":", lw=1, label="peak")
+        growth = result.rss_growth_mb_per_1000
+        title = f"seamap bench: {result.scenario}, {result.frames} frames"
+        if math.isfinite(growth):
+            title += f" (growth {growth:.2f} MB per 1000 frames, second half)"
+        axes.set_title(title, fontsize=10)
+        axes.set_xlabel("frames")
+        axes.set_ylabel("MB")
+        axes.set_ylim(bottom=0)
+        axes.grid(alpha=0.3)
+        axes.legend(loc="lower right", fontsize=9)
+        figure.tight_layout()
+        figure.savefig(path)
+    finally:
+        plt.close(figure)

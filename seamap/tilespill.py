@@ -1,31 +1,43 @@
 """Tiles the boat has left, kept on disk (``mapping.tiles.TileSpill``).
 
-One compressed ``.npz`` a tile in a folder, written to a temporary name and renamed, so a
-crash never leaves half a tile; a spilled tile that comes back into memory is read and
-its file kept until the next spill overwrites it. The fastest deflate level: a tile's
-candidate stacks are mostly empty slots, so it packs them as small as the default level
-(2.4 MB of 5.3) in half the time, and spilling runs on the mapping thread.
+One file a tile in a folder (``tile_{col}_{row}.zst``), written to a temporary name and
+renamed, so a crash never leaves half a tile; a spilled tile that comes back into memory
+is read and its file kept until the next spill overwrites it.
+
+A file is a magic line, the length and JSON list of its arrays (name, dtype, shape), and
+their bytes in one Zstandard frame at level 1. A tile's candidate stacks are mostly
+empty slots or speckle: on tiles of a simulated survey (5.3 MB each) Zstandard packed
+them as small as deflate at its fastest level (2.27 MB against 2.33 for a full tile) in
+a sixth of the time (8.7 ms against 55; reading 3.5 ms against 13.5), and spilling runs
+on the mapping thread. Storing them raw instead wrote 167 GB over the two-hour hectare.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
-import zipfile
+import struct
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import zstandard
 
 from mapping.mosaic import TileKey
 
-_NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.npz$")
+_NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.zst$")
+_MAGIC = b"SEAMAP-TILE 1\n"
 COMPRESS_LEVEL = 1
 
 
+class SpillError(ValueError):
+    """A spilled tile's file cannot be read back (named, with why)."""
+
+
 class DiskSpill:
-    """Spilled tiles as ``folder/tile_{col}_{row}.npz``."""
+    """Spilled tiles as ``folder/tile_{col}_{row}.zst``."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
@@ -36,19 +48,27 @@ class DiskSpill:
             if match:
                 self._keys.add((int(match[1]), int(match[2])))
         self.bytes_written = 0
+        self._compressor = zstandard.ZstdCompressor(level=COMPRESS_LEVEL)
+        self._decompressor = zstandard.ZstdDecompressor()
 
     def _path(self, key: TileKey) -> Path:
-        return self.folder / f"tile_{key[0]}_{key[1]}.npz"
+        return self.folder / f"tile_{key[0]}_{key[1]}.zst"
 
     def save(self, key: TileKey, arrays: dict[str, npt.NDArray[np.generic]]) -> None:
         path = self._path(key)
         tmp = path.with_name(f".{path.name}.tmp")
-        with zipfile.ZipFile(
-            tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL
-        ) as archive:
-            for name, values in arrays.items():  # the layout np.savez writes
-                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.asanyarray(values), allow_pickle=False)
+        contiguous = {name: np.ascontiguousarray(values) for name, values in arrays.items()}
+        header = json.dumps(
+            [[name, v.dtype.str, list(v.shape)] for name, v in contiguous.items()]
+        ).encode("ascii")
+        chunker = self._compressor.chunker(size=sum(v.nbytes for v in contiguous.values()))
+        with open(tmp, "wb") as out:
+            out.write(_MAGIC + struct.pack("<I", len(header)) + header)
+            for values in contiguous.values():
+                for chunk in chunker.compress(values.data.cast("B")):
+                    out.write(chunk)
+            for chunk in chunker.finish():
+                out.write(chunk)
         os.replace(tmp, path)
         self.bytes_written += path.stat().st_size
         self._keys.add(key)
@@ -56,8 +76,28 @@ class DiskSpill:
     def load(self, key: TileKey) -> dict[str, npt.NDArray[np.generic]] | None:
         if key not in self._keys:
             return None
-        with np.load(self._path(key)) as data:
-            return {name: data[name] for name in data.files}
+        path = self._path(key)
+        data = path.read_bytes()
+        try:
+            if not data.startswith(_MAGIC):
+                raise SpillError("not a seamap tile")
+            start = len(_MAGIC) + 4
+            (length,) = struct.unpack_from("<I", data, len(_MAGIC))
+            layout = json.loads(data[start : start + length])
+            sizes = [int(np.dtype(dtype).itemsize * np.prod(shape)) for _, dtype, shape in layout]
+            # Writable (a bytearray): the tile's stacks are updated in place once loaded.
+            payload = bytearray(self._decompressor.decompress(data[start + length :]))
+            if len(payload) != sum(sizes):
+                raise SpillError(f"{len(payload)} bytes where its arrays need {sum(sizes)}")
+        except (SpillError, ValueError, struct.error, zstandard.ZstdError) as exc:
+            raise SpillError(f"spilled tile {path}: cannot be read back ({exc})") from None
+        out: dict[str, npt.NDArray[np.generic]] = {}
+        offset = 0
+        for (name, dtype, shape), size in zip(layout, sizes, strict=True):
+            out[name] = np.frombuffer(payload, dtype, size // np.dtype(dtype).itemsize, offset)
+            out[name] = out[name].reshape(shape)
+            offset += size
+        return out
 
     def keys(self) -> Iterable[TileKey]:
         return sorted(self._keys)

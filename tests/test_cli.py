@@ -107,8 +107,9 @@ def test_simulate_rejects_an_unknown_scenario(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
 
 
-def test_bench_reports_the_numbers_we_steer_by() -> None:
-    result = seamap("bench", "--pings", "40", "--beams", "64", "--json")
+def test_bench_reports_the_numbers_we_steer_by(tmp_path: Path) -> None:
+    plot = tmp_path / "memory.png"
+    result = seamap("bench", "--pings", "40", "--beams", "64", "--json", "--plot", plot)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     for key in (
@@ -128,3 +129,7 @@ def test_bench_reports_the_numbers_we_steer_by() -> None:
     assert report["frames_per_second"] > 0
     assert report["realtime_factor_10hz"] == pytest.approx(report["frames_per_second"] / 10)
     assert {"preprocess", "registration", "blending", "render"} <= set(report["stages"])
+    # The memory curve: a sample every 200 frames and one at the end, drawn as a PNG.
+    assert report["memory_samples"][-1][0] == 40
+    assert all(rss > 0 for _, rss in report["memory_samples"])
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

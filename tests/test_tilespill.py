@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from seamap.tilespill import DiskSpill
+from seamap.tilespill import DiskSpill, SpillError
 
 
 def test_tiles_round_trip_through_disk(tmp_path: Path) -> None:
@@ -28,3 +29,25 @@ def test_tiles_round_trip_through_disk(tmp_path: Path) -> None:
     again = DiskSpill(tmp_path / "tiles")
     assert list(again.keys()) == [(3, -2)]
     assert not list((tmp_path / "tiles").glob(".*tmp"))
+
+
+def test_loaded_tiles_are_writable(tmp_path: Path) -> None:
+    """The tile store updates a loaded tile's stacks in place."""
+    spill = DiskSpill(tmp_path / "tiles")
+    spill.save((0, 0), {"score": np.zeros((4, 4, 2), np.uint16)})
+    back = spill.load((0, 0))
+    assert back is not None
+    back["score"][1, 1, 0] = 7
+    assert back["score"][1, 1, 0] == 7
+
+
+def test_a_damaged_tile_file_is_named_in_one_line(tmp_path: Path) -> None:
+    spill = DiskSpill(tmp_path / "tiles")
+    spill.save((1, 2), {"score": np.arange(64, dtype=np.uint16).reshape(4, 4, 4)})
+    path = tmp_path / "tiles" / "tile_1_2.zst"
+    path.write_bytes(path.read_bytes()[:-5])  # cut short, as a full disk might leave it
+    with pytest.raises(SpillError, match=r"tile_1_2\.zst: cannot be read back"):
+        spill.load((1, 2))
+    path.write_bytes(b"PK\x03\x04 an old npz")
+    with pytest.raises(SpillError, match="not a seamap tile"):
+        spill.load((1, 2))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from seamap.errors import SeamapError
@@ -29,6 +30,9 @@ def register(subparsers: Any) -> None:
         "--final", action="store_true", help="also time the survey-end pass (renders twice)"
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--plot", type=Path, default=None, metavar="PNG", help="draw the memory curve there"
+    )
     parser.set_defaults(handler=run)
 
 
@@ -37,6 +41,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.pings is not None and args.pings < 1:
         raise SeamapError(f"--pings must be at least 1, got {args.pings}")
+    if args.plot is not None and not args.plot.parent.is_dir():
+        raise SeamapError(f"--plot {args.plot}: no folder {args.plot.parent} to write it in")
     # OpenCV's thread count is process-wide and changes the last bits of its sums: put it
     # back afterwards, so a bench run inside another program leaves its results alone.
     threads = cv2.getNumThreads()
@@ -48,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from seamap.bench import format_table, run_bench
+    from seamap.bench import format_table, plot_memory, run_bench
 
     overrides: dict[str, Any] = {}
     if args.beams is not None:
@@ -68,4 +74,9 @@ def _bench(args: argparse.Namespace) -> int:
         print(json.dumps(result.as_json(), sort_keys=True))
     else:
         print(format_table(result))
+    if args.plot is not None:
+        try:
+            plot_memory(result, args.plot)
+        except OSError as exc:
+            raise SeamapError(f"--plot {args.plot}: cannot write it ({exc.strerror})") from None
     return 0
