@@ -198,6 +198,9 @@ class PreparedFrame:
     polar_spectrum: npt.NDArray[np.complex64]  # rfft2 of the log-polar log-magnitude
     window: FloatImage | None = None  # unpadded taper, where the frame has data
     sectors: _Sectors | None = None  # when it is the earlier frame of a pair
+    rows_spectrum: npt.NDArray[np.complex64] | None = None
+    """rfft of windowed's rows: the first step of its spectrum and of every turn of it
+    (``FmtRegistrar._rotated_spectrum``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -423,12 +426,14 @@ class FmtRegistrar:
         square[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = windowed
         padded = np.zeros(self.shape_t, np.float32)
         padded[self.row0_t : self.row0_t + rows, self.col0_t : self.col0_t + cols] = windowed
+        rows_spectrum = scipy.fft.rfft(padded, axis=1, workers=1)
         return PreparedFrame(
             windowed=padded,
             image=frame,
-            spectrum=scipy.fft.rfft2(padded, workers=1).astype(np.complex64),
+            spectrum=scipy.fft.fft(rows_spectrum, axis=0, workers=1).astype(np.complex64),
             polar_spectrum=self._polar_spectrum(scipy.fft.rfft2(square, workers=1)),
             window=window,
+            rows_spectrum=rows_spectrum,
         )
 
     def _sectors(self, frame: PreparedFrame) -> _Sectors:
@@ -601,7 +606,9 @@ class FmtRegistrar:
         a, b = -math.tan(angle_rad / 2.0), math.sin(angle_rad)
         x_ramp = _phase_ramp((np.arange(height) - cy) * a, self._kx_turns)
         y_ramp = _phase_ramp(self._ky_turns, (np.arange(width) - cx) * b)
-        rows = scipy.fft.rfft(frame.windowed, axis=1, workers=1)
+        rows = frame.rows_spectrum
+        if rows is None:
+            rows = scipy.fft.rfft(frame.windowed, axis=1, workers=1)
         image = scipy.fft.irfft(rows * x_ramp, n=width, axis=1, workers=1)
         columns = scipy.fft.rfft(image, axis=0, workers=1)
         image = scipy.fft.irfft(columns * y_ramp, n=height, axis=0, workers=1)
@@ -614,9 +621,9 @@ class FmtRegistrar:
         """Phase-correlation surfaces of each earlier sector against the later image, and
         their mean, the frame's surface. Each sector is whitened by its own cross-power:
         whitening all by the frame's would couple them and push their peaks apart."""
-        cross = sector_spectra * np.conj(later_spectrum)[None]
         # Phase only, then a low-pass: speckle fills the high frequencies with noise that
         # whitening would weigh as much as the seabed's texture.
+        cross = sector_spectra * np.conj(later_spectrum)[None]
         cross *= self._lowpass[None] / (np.abs(cross) + 1e-9)
         values = scipy.fft.irfft2(cross, s=self.shape_t, axes=(-2, -1), workers=1)
         sectors = [self._surface(v) for v in values]
@@ -645,29 +652,40 @@ class FmtRegistrar:
         positive; covariance s^2 H^-1 G H^-1 with H the surface's Hessian at the peak."""
         values = surface.values
         height, width = values.shape
-        rows = (py + np.arange(-1, 2)) % height
-        cols = (px + np.arange(-1, 2)) % width
-        patch = values[np.ix_(rows, cols)].astype(np.float64)
-        centre = float(patch[1, 1])
-        logarithmic = bool(patch.min() > 0.02 * centre > 0.0)
-        f = np.log(patch) if logarithmic else patch
-        gradient = np.array([f[1, 2] - f[1, 0], f[2, 1] - f[0, 1]]) / 2.0
-        cross = (f[2, 2] - f[2, 0] - f[0, 2] + f[0, 0]) / 4.0
-        hessian = np.array(
-            [[f[1, 2] - 2 * f[1, 1] + f[1, 0], cross], [cross, f[2, 1] - 2 * f[1, 1] + f[0, 1]]]
-        )
-        if hessian[0, 0] < 0.0 and np.linalg.det(hessian) > 0.0:
-            offset = np.clip(-np.linalg.solve(hessian, gradient), -1.0, 1.0)
-            top = float(f[1, 1] + gradient @ offset + 0.5 * offset @ hessian @ offset)
+        # In scalars: numpy's overhead on 3 x 3 and 2 x 2 arrays was most of a peak's time.
+        if 0 < py < height - 1 and 0 < px < width - 1:
+            patch: list[list[float]] = values[py - 1 : py + 2, px - 1 : px + 2].tolist()
+        else:
+            rows = ((py - 1) % height, py, (py + 1) % height)
+            cols = ((px - 1) % width, px, (px + 1) % width)
+            patch = [[float(values[r, c]) for c in cols] for r in rows]
+        centre = patch[1][1]
+        logarithmic = min(min(row) for row in patch) > 0.02 * centre > 0.0
+        f = [[math.log(v) for v in row] for row in patch] if logarithmic else patch
+        gx, gy = (f[1][2] - f[1][0]) / 2.0, (f[2][1] - f[0][1]) / 2.0
+        hxy = (f[2][2] - f[2][0] - f[0][2] + f[0][0]) / 4.0
+        hxx = f[1][2] - 2.0 * f[1][1] + f[1][0]
+        hyy = f[2][1] - 2.0 * f[1][1] + f[0][1]
+        det = hxx * hyy - hxy * hxy
+        if hxx < 0.0 and det > 0.0:
+            ox = min(max(-(hyy * gx - hxy * gy) / det, -1.0), 1.0)
+            oy = min(max(-(hxx * gy - hxy * gx) / det, -1.0), 1.0)
+            top = (
+                f[1][1]
+                + gx * ox
+                + gy * oy
+                + 0.5 * (hxx * ox * ox + 2.0 * hxy * ox * oy + hyy * oy * oy)
+            )
             value = math.exp(top) if logarithmic else top
             if logarithmic:
-                hessian = value * hessian  # of the surface at its maximum (gradient 0)
-            inverse = _inverse2(hessian)
+                # Of the surface at its maximum (gradient 0).
+                hxx, hxy, hyy, det = value * hxx, value * hxy, value * hyy, value * value * det
+            inverse = np.array([[hyy, -hxy], [-hxy, hxx]]) / det
             covariance = inverse @ surface.gradient_noise @ inverse
         else:
             # A ridge or a saddle, not a peak: the pixel itself, a pixel's spread.
-            offset, value, covariance = np.zeros(2), centre, np.eye(2)
-        x, y = px + float(offset[0]), py + float(offset[1])
+            ox, oy, value, covariance = 0.0, 0.0, centre, np.eye(2)
+        x, y = px + ox, py + oy
         # Shifts beyond half the transform wrap around to negative ones.
         x -= width if x > width / 2 else 0
         y -= height if y > height / 2 else 0
@@ -676,11 +694,16 @@ class FmtRegistrar:
     def _local_peak(self, surface: _Surface, x: float, y: float, radius: int) -> _Peak:
         """The highest pixel within ``radius`` of shift (x, y), refined (``_peak``)."""
         height, width = surface.values.shape
-        xs = (round(x) + np.arange(-radius, radius + 1)) % width
-        ys = (round(y) + np.arange(-radius, radius + 1)) % height
+        cx, cy = round(x) % width, round(y) % height
+        if radius <= cy < height - radius and radius <= cx < width - radius:
+            window = surface.values[cy - radius : cy + radius + 1, cx - radius : cx + radius + 1]
+            iy, ix = divmod(int(np.argmax(window)), 2 * radius + 1)
+            return self._peak(surface, cx - radius + ix, cy - radius + iy)
+        xs = (cx + np.arange(-radius, radius + 1)) % width
+        ys = (cy + np.arange(-radius, radius + 1)) % height
         window = surface.values[np.ix_(ys, xs)]
-        iy, ix = np.unravel_index(int(np.argmax(window)), window.shape)
-        return self._peak(surface, int(xs[ix]), int(ys[iy]))
+        row, col = divmod(int(np.argmax(window)), 2 * radius + 1)
+        return self._peak(surface, int(xs[col]), int(ys[row]))
 
     def _candidates(
         self,
@@ -770,33 +793,49 @@ class FmtRegistrar:
             covariance[:2, 2] = covariance[2, :2] = yaw_var * lever
             covariance[2, 2] = yaw_var
             return _Fit(relative, covariance, mode)
-        e = np.array(earlier_points)[:, :2]
-        y = np.array(later_points)[:, :2]
-        w = np.array(weights)
-        params = np.array([relative.forward_m, relative.starboard_m, relative.yaw_rad])
+        # Gauss-Newton in scalars (2-4 points: numpy's overhead was most of the time).
+        points = [
+            (float(ep[0]), float(ep[1]), float(lp[0]), float(lp[1]), wt[0, 0], wt[0, 1], wt[1, 1])
+            for ep, lp, wt in zip(earlier_points, later_points, weights, strict=True)
+        ]
+        tx, ty, yaw = relative.forward_m, relative.starboard_m, relative.yaw_rad
+        normal = np.eye(3)
         for _ in range(4):
-            c, s = math.cos(params[2]), math.sin(params[2])
-            turned = y @ np.array([[c, s], [-s, c]])  # R y, row-wise
-            residual = e - turned - params[:2]
-            j = np.zeros((len(e), 2, 3))  # d(R y + t)/d(t, yaw)
-            j[:, 0, 0] = j[:, 1, 1] = 1.0
-            j[:, :, 2] = turned @ np.array([[0.0, 1.0], [-1.0, 0.0]])  # R' y = J R y
-            weighted = np.einsum("kab,kbc->kac", w, j)
-            normal = np.einsum("kba,kbc->ac", j, weighted)
-            step = np.linalg.solve(normal, np.einsum("kba,kb->a", weighted, residual))
-            params += step
+            c, s = math.cos(yaw), math.sin(yaw)
+            n00 = n01 = n02 = n11 = n12 = n22 = g0 = g1 = g2 = 0.0
+            for ex, ey, yx, yy, w00, w01, w11 in points:
+                ux, uy = c * yx - s * yy, s * yx + c * yy  # R y
+                rx, ry = ex - ux - tx, ey - uy - ty
+                # J = [[1, 0, -uy], [0, 1, ux]] (d(R y + t)/d(t, yaw)); W symmetric.
+                a2 = -uy * w00 + ux * w01  # (W J)[0, 2]
+                b2 = -uy * w01 + ux * w11  # (W J)[1, 2]
+                n00 += w00
+                n01 += w01
+                n11 += w11
+                n02 += a2
+                n12 += b2
+                n22 += -uy * a2 + ux * b2
+                g0 += w00 * rx + w01 * ry
+                g1 += w01 * rx + w11 * ry
+                g2 += a2 * rx + b2 * ry
+            normal = np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]])
+            step = np.linalg.solve(normal, np.array([g0, g1, g2]))
+            tx, ty, yaw = tx + float(step[0]), ty + float(step[1]), yaw + float(step[2])
             if abs(step[2]) < 1e-9 and float(np.abs(step[:2]).max()) < 1e-7:
                 break
-        c, s = math.cos(params[2]), math.sin(params[2])
-        residual = e - y @ np.array([[c, s], [-s, c]]) - params[:2]
-        chi2 = float(np.einsum("ka,kab,kb->", residual, w, residual))
+        c, s = math.cos(yaw), math.sin(yaw)
+        chi2 = 0.0
+        for ex, ey, yx, yy, w00, w01, w11 in points:
+            rx = ex - (c * yx - s * yy) - tx
+            ry = ey - (s * yx + c * yy) - ty
+            chi2 += w00 * rx * rx + 2.0 * w01 * rx * ry + w11 * ry * ry
         # The sectors' disagreement scales the covariance (a Birge ratio, shrunk towards 1
         # by ``covariance_prior_dof``): the first-order peak covariance misses errors that
         # grow with how differently the two frames see the seabed.
         dof = 2 * len(weights) - 3
         birge = (p.covariance_prior_dof + chi2) / (p.covariance_prior_dof + dof)
-        covariance = np.linalg.inv(normal) * (p.covariance_scale * birge)
-        return _Fit(RelativePose(*(float(v) for v in params)), covariance, mode)
+        fitted = np.asarray(np.linalg.inv(normal) * (p.covariance_scale * birge), np.float64)
+        return _Fit(RelativePose(tx, ty, yaw), fitted, mode)
 
     def _turned(self, fit: _Fit, yaw_rad: float) -> _Fit:
         """The fit turned by a small ``yaw_rad`` about the fan's centre (where the

@@ -48,29 +48,48 @@ Index = npt.NDArray[np.intp]
 
 
 @_compiled
-def offer(
+def any_valid(warped: F32) -> bool:
+    """Whether any pixel of a warped frame stack (rows, cols, [image, score, mask]) is
+    wholly inside the fan with a score (``offer_warped``'s test), stopping at the first."""
+    rows, cols = warped.shape[0], warped.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            if warped[i, j, 2] >= np.float32(0.999) and warped[i, j, 1] > np.float32(0.0):
+                return True
+    return False
+
+
+@_compiled
+def offer_warped(
     score: U16,
     intensity: U8,
     frame: U16,
     r0: int,
     c0: int,
-    new_score: U16,
-    new_value: U8,
-    valid: Mask,
+    warped: F32,
     tag: int,
 ) -> Mask:
-    """Offer a frame's pixels to a tile's candidate stacks ((rows, cols, N) each) over
-    the box at (r0, c0) the size of ``new_score``: where ``valid`` and the new score
-    beats the pixel's weakest candidate, the candidate goes into the first slot holding
-    that weakest one. Returns where it went in (the pixels to render again)."""
+    """Offer a frame's pixels to a tile's candidate stacks ((rows, cols, N) each): the
+    frame as warped into the box at (r0, c0) of the tile, (rows, cols,
+    [image, score, mask]) in float32, in one pass. A pixel is offered where it is wholly
+    inside the fan (mask >= 0.999: interpolation across the fan's edge would mix in the
+    zeros outside it) and has a score; its score is quantised to 1..65535 and its image
+    to grey levels 0..255 as ``mapping.tiles`` did with numpy (the same float32 steps),
+    which took ten whole-box passes. Where a pixel's quantised score beats its weakest
+    candidate, it goes into the first slot holding that weakest one. Returns where it
+    went in (the pixels to render again)."""
     n = score.shape[2]
-    rows, cols = new_score.shape
+    rows, cols = warped.shape[0], warped.shape[1]
     better = np.zeros((rows, cols), np.bool_)
+    full = np.float32(0.999)
     for i in range(rows):
         r = r0 + i
         for j in range(cols):
-            if not valid[i, j]:
+            s = warped[i, j, 1]
+            if not (warped[i, j, 2] >= full and s > np.float32(0.0)):
                 continue
+            q = min(max(np.rint(s * np.float32(65535.0)), np.float32(0.0)), np.float32(65535.0))
+            new_score = max(np.uint16(q), np.uint16(1))
             c = c0 + j
             slots = score[r, c]
             weakest = slots[0]
@@ -79,10 +98,13 @@ def offer(
                 if slots[k] < weakest:
                     weakest = slots[k]
                     slot = k
-            q = new_score[i, j]
-            if q > weakest:
-                slots[slot] = q
-                intensity[r, c, slot] = new_value[i, j]
+            if new_score > weakest:
+                g = min(
+                    max(np.rint(warped[i, j, 0] * np.float32(255.0)), np.float32(0.0)),
+                    np.float32(255.0),
+                )
+                slots[slot] = new_score
+                intensity[r, c, slot] = np.uint8(g)
                 frame[r, c, slot] = tag
                 better[i, j] = True
     return better
@@ -155,26 +177,26 @@ def blend(
     eta32 = np.float32(eta)
     tiny = np.float32(1e-6)
     s = np.empty(n, np.float32)
-    v = np.empty(n, np.float32)
     kept = np.empty(n, np.int64)
+    v = np.empty(n, np.float32)
     buf = np.empty(n, np.float32)
     dev = np.empty(n, np.float32)
     for p in range(count_px):
-        r = rows[p]
-        c = cols[p]
-        best = np.float32(0.0)
-        for k in range(n):
-            s[k] = np.float32(score[r, c, k]) * inv_score
-            if s[k] > best:
-                best = s[k]
-        if best <= 0.0:
+        slots = score[rows[p], cols[p]]
+        best = slots[0]
+        for k in range(1, n):
+            best = max(best, slots[k])
+        if best == 0:
             continue
-        floor = rho32 * best
+        floor = rho32 * (np.float32(best) * inv_score)
+        # Which slots are kept, without a branch (a store and a count per slot): the
+        # outcome of the test is random from slot to slot, which a branch mispredicts.
         m = 0
         for k in range(n):
-            if s[k] > 0.0 and s[k] >= floor:
-                kept[m] = k
-                m += 1
+            sk = np.float32(slots[k]) * inv_score
+            s[k] = sk
+            kept[m] = k
+            m += (slots[k] > 0) & (sk >= floor)
         if m > top_n:
             # The top_n best scores of the kept (ties: the earlier slot first).
             for a in range(1, m):
@@ -185,23 +207,24 @@ def blend(
                     b -= 1
                 kept[b + 1] = x
             m = top_n
+        values = intensity[rows[p], cols[p]]
         for a in range(m):
-            v[kept[a]] = np.float32(intensity[r, c, kept[a]]) * inv_value
-            buf[a] = v[kept[a]]
+            v[a] = np.float32(values[kept[a]]) * inv_value
+            buf[a] = v[a]
         median = _median_of(buf, m)
         for a in range(m):
-            dev[a] = abs(v[kept[a]] - median)
+            dev[a] = abs(v[a] - median)
             buf[a] = dev[a]
         mad = _median_of(buf, m)
         limit = eta32 * mad
         total = 0.0
         weighted = 0.0
         for a in range(m):
-            if dev[a] <= limit or mad <= tiny:
-                k = kept[a]
-                w = np.float64(weight_lut[score[r, c, k]])
-                total += w
-                weighted += w * np.float64(v[k])
+            # Trimmed candidates add nothing (an exact 0: the same sums as a branch).
+            keep = (dev[a] <= limit) | (mad <= tiny)
+            w = np.float64(weight_lut[slots[kept[a]]]) if keep else 0.0
+            total += w
+            weighted += w * np.float64(v[a])
         if total > 0.0:
             blended = np.float32(weighted / total)
             level = np.rint(blended * np.float32(254.0)) + np.float32(1.0)
@@ -222,7 +245,9 @@ def warm() -> None:
     intensity = np.zeros((2, 2, 4), np.uint8)
     frame = np.full((2, 2, 4), NO_FRAME, np.uint16)
     ones = np.ones((2, 2), np.uint16)
-    offer(score, intensity, frame, 0, 0, ones, ones.astype(np.uint8), ones > 0, 1)
+    warped = np.ones((2, 2, 3), np.float32)
+    any_valid(warped)
+    offer_warped(score, intensity, frame, 0, 0, warped, 1)
     # As the tiles give them: np.nonzero's views (strided, not contiguous).
     rows, cols = np.nonzero(ones > 0)
     blend(intensity, score, rows, cols, np.ones(65536, np.float32), 0.68, 2.7, 4)

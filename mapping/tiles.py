@@ -44,24 +44,6 @@ NO_FRAME = np.uint16(0xFFFF)
 FanPoints = npt.NDArray[np.float64]
 
 
-def _quantise_valid(score: FloatImage, valid: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint16]:
-    """Scores in (0, 1] to 1..65535 where ``valid`` (0 is an empty slot, so a valid score
-    too small to quantise is the smallest); elsewhere any value."""
-    q = np.multiply(score, np.float32(65535.0))
-    np.rint(q, out=q)
-    np.clip(q, 0.0, 65535.0, out=q)
-    out = q.astype(np.uint16)
-    return np.maximum(out, valid.view(np.uint8), out=out)
-
-
-def _grey(image: FloatImage) -> npt.NDArray[np.uint8]:
-    """Intensities in [0, 1] to the uint8 grey levels the tiles keep."""
-    values = np.multiply(image, np.float32(255.0))
-    np.rint(values, out=values)
-    np.clip(values, 0.0, 255.0, out=values)
-    return values.astype(np.uint8)
-
-
 def frame_layers(image: FloatImage, score: FloatImage, mask: npt.NDArray[np.bool_]) -> FloatImage:
     """A frame as the tiles warp it: one (rows, cols, 3) stack of image, score, mask."""
     return np.dstack([image, score, mask.astype(np.float32)])
@@ -329,19 +311,15 @@ class TileStore:
         touched = []
         for key, box in self._boxes(grid, mask, pose).items():
             warped = warp_to_tile(layers, grid, pose, self.grid, key, box)
-            # Only pixels wholly inside the fan: interpolation across the fan's edge would
-            # mix in the zeros outside it.
-            valid = (warped[..., 2] >= 0.999) & (warped[..., 1] > 0.0)
-            if not valid.any():
+            if not kernels.any_valid(warped):
                 continue
             tile = self.tile(key)
             r0, _, c0, _ = box
-            scores = _quantise_valid(warped[..., 1], valid)
-            values = _grey(warped[..., 0])
-            # Each improved pixel's candidate goes into its first slot holding the
-            # weakest one.
-            better = kernels.offer(
-                tile.score, tile.intensity, tile.frame, r0, c0, scores, values, valid, int(tag)
+            # Only pixels wholly inside the fan (interpolation across the fan's edge would
+            # mix in the zeros outside it); each improved pixel's candidate goes into its
+            # first slot holding the weakest one.
+            better = kernels.offer_warped(
+                tile.score, tile.intensity, tile.frame, r0, c0, warped, int(tag)
             )
             tile.mark(box, better, deferred)
             if movable:

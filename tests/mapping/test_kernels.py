@@ -26,8 +26,26 @@ def _stacks(rng: np.random.Generator, fill: float) -> tuple[np.ndarray, ...]:
     return score, intensity, frame
 
 
-def _offer_numpy(score, intensity, frame, r0, c0, new_score, new_value, valid, tag):
-    """The update as tiles.py made it with numpy before the kernel."""
+def _quantise_valid(score, valid):
+    """Scores as tiles.py quantised them with numpy: 1..65535 where valid."""
+    q = np.multiply(score, np.float32(65535.0))
+    np.rint(q, out=q)
+    np.clip(q, 0.0, 65535.0, out=q)
+    return np.maximum(q.astype(np.uint16), valid.view(np.uint8))
+
+
+def _grey(image):
+    values = np.multiply(image, np.float32(255.0))
+    np.rint(values, out=values)
+    np.clip(values, 0.0, 255.0, out=values)
+    return values.astype(np.uint8)
+
+
+def _offer_numpy(score, intensity, frame, r0, c0, warped, tag):
+    """The update as tiles.py made it with numpy before the kernels."""
+    valid = (warped[..., 2] >= 0.999) & (warped[..., 1] > 0.0)
+    new_score = _quantise_valid(warped[..., 1], valid)
+    new_value = _grey(warped[..., 0])
     rows_n, cols_n = new_score.shape
     box = (slice(r0, r0 + rows_n), slice(c0, c0 + cols_n))
     weakest = score[box].min(axis=2)
@@ -46,14 +64,20 @@ def test_offering_a_frame_fills_the_first_weakest_slot(fill: float) -> None:
     rng = np.random.default_rng(1)
     score, intensity, frame = _stacks(rng, fill)
     r0, c0, rows, cols = 5, 9, 40, 50
-    new_score = (rng.integers(1, 400, (rows, cols)) * 160).astype(np.uint16)
-    new_value = rng.integers(0, 256, (rows, cols)).astype(np.uint8)
-    valid = rng.random((rows, cols)) < 0.8
-    expected = [a.copy() for a in (score, intensity, frame)]
-    want = _offer_numpy(
-        expected[0], expected[1], expected[2], r0, c0, new_score, new_value, valid, 7
+    # A warped frame: scores on the tiles' quantisation steps and between them, some 0
+    # or tiny; the fan's edge interpolated (mask between 0 and 1), intensities anywhere.
+    warped = np.empty((rows, cols, 3), np.float32)
+    warped[..., 0] = rng.random((rows, cols)) * 1.02 - 0.01
+    steps = rng.integers(0, 400, (rows, cols)) * 160 / 65535.0
+    warped[..., 1] = np.where(rng.random((rows, cols)) < 0.5, steps, rng.random((rows, cols)))
+    warped[..., 1][rng.random((rows, cols)) < 0.05] = 1e-7
+    warped[..., 2] = rng.choice(
+        [0.0, 0.5, 0.9989, 0.999, 1.0], (rows, cols), p=[0.1, 0.05, 0.05, 0.1, 0.7]
     )
-    got = kernels.offer(score, intensity, frame, r0, c0, new_score, new_value, valid, 7)
+    expected = [a.copy() for a in (score, intensity, frame)]
+    want = _offer_numpy(expected[0], expected[1], expected[2], r0, c0, warped, 7)
+    assert kernels.any_valid(warped) == bool(want.any())
+    got = kernels.offer_warped(score, intensity, frame, r0, c0, warped, 7)
     np.testing.assert_array_equal(got, want)
     assert want.any() and (fill == 0.0 or not want.all())
     for a, b in zip((score, intensity, frame), expected, strict=True):
@@ -133,7 +157,7 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
     frame does not compile."""
     code = (
         "from mapping import kernels\n"
-        "loops = (kernels.offer, kernels.take_out, kernels.blend)\n"
+        "loops = (kernels.any_valid, kernels.offer_warped, kernels.take_out, kernels.blend)\n"
         "assert not any(loop.signatures for loop in loops)\n"
         "kernels.warm()\n"
         "warmed = [len(loop.signatures) for loop in loops]\n"
@@ -152,4 +176,19 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
     )
     assert done.returncode == 0, done.stderr
     # One signature each, and the tiles' own calls needed no other.
-    assert done.stdout.strip() == "[1, 1, 1] [1, 1, 1]"
+    assert done.stdout.strip() == "[1, 1, 1, 1] [1, 1, 1, 1]"
+
+
+def test_a_box_the_fan_only_grazes_offers_nothing() -> None:
+    """Interpolated across the fan's edge (mask below 0.999) or without a score: not a
+    pixel to offer, and the tile is not even loaded for it."""
+    warped = np.zeros((6, 8, 3), np.float32)
+    warped[..., 0] = 0.5
+    warped[..., 1] = 0.3
+    warped[..., 2] = 0.998
+    assert not kernels.any_valid(warped)
+    warped[2, 3, 2] = 1.0
+    warped[2, 3, 1] = 0.0
+    assert not kernels.any_valid(warped)
+    warped[2, 3, 1] = 0.3
+    assert kernels.any_valid(warped)
