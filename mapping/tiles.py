@@ -19,7 +19,6 @@ stack; the live map accepts that small loss, and the survey-end pass renders fro
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -240,40 +239,15 @@ class TileStore:
             self._fan_samples = {id(mask): samples}
         _, metric, spacing = samples
         world = sonar_to_utm(pose) @ metric
-        x, y = world[0], world[1]
         t = self.grid.tile_m
         margin = spacing + 2 * self.grid.res_m
         boxes: dict[TileKey, tuple[int, int, int, int]] = {}
-        if x.size == 0:
-            return boxes
-        # Each tile within a margin of a sample: a column of tiles at a time over the
-        # samples' extent (0.2 ms a fan, against 1.1 for a set of every sample's tiles).
-        for col in range(
-            math.floor((float(x.min()) - margin) / t), math.floor((float(x.max()) + margin) / t) + 1
-        ):
-            x0 = col * t
-            in_col = (x >= x0 - margin) & (x < x0 + t + margin)
-            if not in_col.any():
-                continue
-            xc, yc = x[in_col], y[in_col]
-            for row in range(
-                math.floor((float(yc.min()) - margin) / t),
-                math.floor((float(yc.max()) + margin) / t) + 1,
-            ):
-                y0 = row * t
-                near = (yc >= y0 - margin) & (yc < y0 + t + margin)
-                if not near.any():
-                    continue
-                xn, yn = xc[near], yc[near]
-                bounds = (
-                    float(xn.min()) - margin,
-                    float(yn.min()) - margin,
-                    float(xn.max()) + margin,
-                    float(yn.max()) + margin,
-                )
-                box = tile_box(self.grid, (col, row), bounds)
-                if box is not None:
-                    boxes[(col, row)] = box
+        # Each tile within a margin of a sample, and the samples' extent near it.
+        for col, row, e0, n0, e1, n1 in kernels.tiles_near(world[0], world[1], t, margin):
+            key = (int(col), int(row))
+            box = tile_box(self.grid, key, (e0 - margin, n0 - margin, e1 + margin, n1 + margin))
+            if box is not None:
+                boxes[key] = box
         return boxes
 
     def insert(

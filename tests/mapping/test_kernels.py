@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -157,7 +158,10 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
     frame does not compile."""
     code = (
         "from mapping import kernels\n"
-        "loops = (kernels.any_valid, kernels.offer_warped, kernels.take_out, kernels.blend)\n"
+        "loops = (\n"
+        "    kernels.any_valid, kernels.offer_warped, kernels.take_out, kernels.blend,\n"
+        "    kernels.tiles_near,\n"
+        ")\n"
         "assert not any(loop.signatures for loop in loops)\n"
         "kernels.warm()\n"
         "warmed = [len(loop.signatures) for loop in loops]\n"
@@ -176,7 +180,7 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
     )
     assert done.returncode == 0, done.stderr
     # One signature each, and the tiles' own calls needed no other.
-    assert done.stdout.strip() == "[1, 1, 1, 1] [1, 1, 1, 1]"
+    assert done.stdout.strip() == "[1, 1, 1, 1, 1] [1, 1, 1, 1, 1]"
 
 
 def test_a_box_the_fan_only_grazes_offers_nothing() -> None:
@@ -192,3 +196,55 @@ def test_a_box_the_fan_only_grazes_offers_nothing() -> None:
     assert not kernels.any_valid(warped)
     warped[2, 3, 1] = 0.3
     assert kernels.any_valid(warped)
+
+
+def _tiles_near_numpy(x, y, t, margin):
+    """The tiles near a fan's samples as tiles.py found them with numpy masks."""
+    found = []
+    for col in range(math.floor((x.min() - margin) / t), math.floor((x.max() + margin) / t) + 1):
+        x0 = col * t
+        in_col = (x >= x0 - margin) & (x < x0 + t + margin)
+        if not in_col.any():
+            continue
+        xc, yc = x[in_col], y[in_col]
+        for row in range(
+            math.floor((yc.min() - margin) / t), math.floor((yc.max() + margin) / t) + 1
+        ):
+            y0 = row * t
+            near = (yc >= y0 - margin) & (yc < y0 + t + margin)
+            if near.any():
+                xn, yn = xc[near], yc[near]
+                found.append((col, row, xn.min(), yn.min(), xn.max(), yn.max()))
+    return np.array(found, float).reshape(-1, 6)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_tiles_near_a_fan_are_those_the_masks_found(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    # A fan's samples somewhere in UTM, some on tile edges exactly (t = 5.12 m).
+    t, margin = 5.12, 0.16
+    centre = rng.uniform(-1e3, 1e3, 2) + 4.0e5
+    radius = rng.uniform(0.5, 12.0, 400)
+    bearing = rng.uniform(-1.2, 1.2, 400) + rng.uniform(0, 2 * np.pi)
+    x = centre[0] + radius * np.cos(bearing)
+    y = centre[1] + radius * np.sin(bearing)
+    x[:20] = np.round(x[:20] / t) * t + rng.choice([-margin, 0.0, margin], 20)
+    got = kernels.tiles_near(x, y, t, margin)
+    np.testing.assert_array_equal(got, _tiles_near_numpy(x, y, t, margin))
+    assert kernels.tiles_near(x[:0], y[:0], t, margin).shape == (0, 6)
+
+
+def test_the_sorting_network_sorts_every_count_ties_and_all() -> None:
+    rng = np.random.default_rng(9)
+    for count in range(kernels.NETWORK_SIZE + 1):
+        for _ in range(50):
+            values = (rng.integers(0, 6, kernels.NETWORK_SIZE) / 255.0).astype(np.float32)
+            want = np.sort(values[:count])
+            kernels._sort_by_network(values, count)
+            np.testing.assert_array_equal(values[:count], want)
+    # Every 0/1 input of 16 (the 0-1 principle: then it sorts anything).
+    bits = (np.arange(2**16)[:, None] >> np.arange(16)) & 1
+    for row in bits:
+        values = row.astype(np.float32)
+        kernels._sort_by_network(values, 16)
+        assert np.all(np.diff(values) >= 0)
