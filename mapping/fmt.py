@@ -795,8 +795,13 @@ class FmtRegistrar:
             return _Fit(relative, covariance, mode)
         # Gauss-Newton in scalars (2-4 points: numpy's overhead was most of the time).
         points = [
-            (float(ep[0]), float(ep[1]), float(lp[0]), float(lp[1]), wt[0, 0], wt[0, 1], wt[1, 1])
-            for ep, lp, wt in zip(earlier_points, later_points, weights, strict=True)
+            (ep[0], ep[1], lp[0], lp[1], wt[0][0], wt[0][1], wt[1][1])
+            for ep, lp, wt in zip(
+                np.array(earlier_points).tolist(),
+                np.array(later_points).tolist(),
+                np.array(weights).tolist(),
+                strict=True,
+            )
         ]
         tx, ty, yaw = relative.forward_m, relative.starboard_m, relative.yaw_rad
         normal = np.eye(3)

@@ -313,7 +313,8 @@ def tiles_near(x: F64, y: F64, t: float, margin: float) -> F64:
     of those near points: rows (col, row, x min, y min, x max, y max), by column then
     row. A point is near tile (col, row) where col t - margin <= x < (col + 1) t +
     margin, and the same for y; a column's rows are searched over its near points' y
-    span: what ``mapping.tiles`` did with a dozen masks a column (0.28 ms a frame)."""
+    span: what ``mapping.tiles`` did with a dozen masks a column (0.28 ms a frame
+    drawn)."""
     out = np.empty((0, 6), np.float64)
     if x.size == 0:
         return out
