@@ -47,6 +47,10 @@ Mask = npt.NDArray[np.bool_]
 Index = npt.NDArray[np.intp]
 F64 = npt.NDArray[np.float64]
 
+INSIDE = np.float32(0.999)
+"""A warped pixel is inside the fan where its interpolated mask is at least this: across
+the fan's edge interpolation mixes in the zeros outside it."""
+
 
 @_compiled
 def any_valid(warped: F32) -> bool:
@@ -55,7 +59,7 @@ def any_valid(warped: F32) -> bool:
     rows, cols = warped.shape[0], warped.shape[1]
     for i in range(rows):
         for j in range(cols):
-            if warped[i, j, 2] >= np.float32(0.999) and warped[i, j, 1] > np.float32(0.0):
+            if warped[i, j, 2] >= INSIDE and warped[i, j, 1] > np.float32(0.0):
                 return True
     return False
 
@@ -71,23 +75,21 @@ def offer_warped(
     tag: int,
 ) -> Mask:
     """Offer a frame's pixels to a tile's candidate stacks ((rows, cols, N) each): the
-    frame as warped into the box at (r0, c0) of the tile, (rows, cols,
-    [image, score, mask]) in float32, in one pass. A pixel is offered where it is wholly
-    inside the fan (mask >= 0.999: interpolation across the fan's edge would mix in the
-    zeros outside it) and has a score; its score is quantised to 1..65535 and its image
-    to grey levels 0..255 as ``mapping.tiles`` did with numpy (the same float32 steps),
-    which took ten whole-box passes. Where a pixel's quantised score beats its weakest
-    candidate, it goes into the first slot holding that weakest one. Returns where it
-    went in (the pixels to render again)."""
+    frame as warped into the box at (r0, c0) of the tile, (rows, cols, [image, score,
+    mask]) in float32, in one pass. A pixel is offered where it is wholly inside the fan
+    (mask >= ``INSIDE``) and has a score; its score is quantised to 1..65535 and its
+    image to grey levels 0..255 as ``mapping.tiles`` did with numpy (the same float32
+    steps), which took ten whole-box passes. Where a pixel's quantised score beats its
+    weakest candidate, it goes into the first slot holding that weakest one. Returns
+    where it went in (the pixels to render again)."""
     n = score.shape[2]
     rows, cols = warped.shape[0], warped.shape[1]
     better = np.zeros((rows, cols), np.bool_)
-    full = np.float32(0.999)
     for i in range(rows):
         r = r0 + i
         for j in range(cols):
             s = warped[i, j, 1]
-            if not (warped[i, j, 2] >= full and s > np.float32(0.0)):
+            if not (warped[i, j, 2] >= INSIDE and s > np.float32(0.0)):
                 continue
             q = min(max(np.rint(s * np.float32(65535.0)), np.float32(0.0)), np.float32(65535.0))
             new_score = max(np.uint16(q), np.uint16(1))
@@ -365,9 +367,9 @@ def warm() -> None:
     warped = np.ones((2, 2, 3), np.float32)
     any_valid(warped)
     offer_warped(score, intensity, frame, 0, 0, warped, 1)
-    # As the tiles give them: np.nonzero's views (strided, not contiguous).
     points = np.zeros(2, np.float64)
     tiles_near(points, points, 1.0, 0.1)
+    # As the tiles give them: np.nonzero's views (strided, not contiguous).
     rows, cols = np.nonzero(ones > 0)
     blend(intensity, score, rows, cols, np.ones(65536, np.float32), 0.68, 2.7, 4)
     take_out(score, frame, 0, 2, 0, 2, 1)

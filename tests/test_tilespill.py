@@ -48,6 +48,14 @@ def test_a_damaged_tile_file_is_named_in_one_line(tmp_path: Path) -> None:
     path.write_bytes(path.read_bytes()[:-5])  # cut short, as a full disk might leave it
     with pytest.raises(SpillError, match=r"tile_1_2\.zst: cannot be read back"):
         spill.load((1, 2))
+    # A header that parses but does not describe arrays.
+    good = tmp_path / "tiles" / "tile_1_2.zst"
+    spill.save((1, 2), {"score": np.zeros((2, 2), np.uint16)})
+    data = good.read_bytes()
+    header = b'[["score", 7, null]]'
+    good.write_bytes(b"SEAMAP-TILE 1\n" + len(header).to_bytes(4, "little") + header + data[-9:])
+    with pytest.raises(SpillError, match="cannot be read back"):
+        spill.load((1, 2))
     path.write_bytes(b"PK\x03\x04 an old npz")
     with pytest.raises(SpillError, match="not a seamap tile"):
         spill.load((1, 2))
