@@ -225,7 +225,10 @@ class Daemon:
         )
         state.segments = max(state.segments + 1, recorder.stats.segments)
         write_state(survey_dir, state)
-        params = StreamingParams(pipeline=pipeline_params(self.config))
+        params = StreamingParams(
+            pipeline=pipeline_params(self.config),
+            tile_memory_mb=self.config.daemon.tile_memory_mb,
+        )
         mount = mount_from_config(self.config.sonar)
         mapper = MappingWorker(
             lambda: StreamingEngine(mount, params, spill=DiskSpill(live_tiles)),

@@ -98,7 +98,10 @@ class StreamingParams:
     every 1.5 s): render 11.7 -> 10.4 ms a frame; nothing at 2 Hz, where most tiles a
     redraw touches leave memory, and are rendered then, before the next."""
     evict_after_s: float = 30.0
-    """A tile no frame has touched for this long leaves memory."""
+    """A tile no frame has touched for this long may leave memory."""
+    tile_memory_mb: float | None = 256.0
+    """Such idle tiles stay in memory, the least recently used leaving first, while the
+    tiles take no more than this (None: idle tiles leave at once)."""
     live_registration_res_m: float | None = 0.03
     """Pixel size of the live registrations (None: the pipeline's). 3 cm halves the FFT
     work; the survey-end pass registers again at the pipeline's full resolution."""
@@ -257,7 +260,11 @@ class StreamingEngine:
         )
         self.scorer = FeatureScorer(p.blend)
         self.tiles = TileStore(
-            TileGrid(p.mosaic_res_m, p.tile_px), p.blend, spill, self.params.evict_after_s
+            TileGrid(p.mosaic_res_m, p.tile_px),
+            p.blend,
+            spill,
+            self.params.evict_after_s,
+            None if self.params.tile_memory_mb is None else int(self.params.tile_memory_mb * 2**20),
         )
         self._heap: list[tuple[float, int, int, Sample]] = []
         self._seq = itertools.count()
@@ -271,6 +278,8 @@ class StreamingEngine:
         self.times: list[float] = []
         self.poses: list[Array] = []
         self.outcomes: list[FrameOutcome] = []
+        """Every frame's registration, kept for the survey-end pass only when it reuses them
+        (``reuse_registrations``): 300 bytes a frame otherwise held for nothing."""
         self.edges: list[Edge] = []
         self._accepted: list[int] = []  # indices of accepted frames, in order
         self._final_upto = 0  # accepted[: this] are final
@@ -466,7 +475,8 @@ class StreamingEngine:
         outcome = self.local.register(index, ping.time, sonar_frame, prior, odometry)
         started = stats.time("registration", started)
         self.times.append(ping.time)
-        self.outcomes.append(outcome)
+        if self.params.reuse_registrations:
+            self.outcomes.append(outcome)
         if not outcome.accepted:
             stats.frames_rejected += 1
             stats.rejected[outcome.reason] = stats.rejected.get(outcome.reason, 0) + 1

@@ -88,6 +88,10 @@ class Tile:
     frame: npt.NDArray[np.uint16]
     version: int = 0
     last_touch: float = 0.0
+    """Survey time of the latest frame offered to the tile."""
+    last_use: int = 0
+    """When the tile was last used (``TileStore``'s count of uses): least recently used
+    tiles leave memory first."""
     changed: npt.NDArray[np.bool_] | None = None  # pixels to render again (None: none)
     deferred: npt.NDArray[np.bool_] | None = None
     """Pixels frames drawn again changed (a re-solve's redraws): rendered with the rest
@@ -149,11 +153,16 @@ class TileStore:
         params: BlendParams | None = None,
         spill: TileSpill | None = None,
         evict_after_s: float = 20.0,
+        memory_bytes: int | None = None,
     ) -> None:
         self.grid = tiles
         self.params = params or BlendParams()
         self.spill: TileSpill = spill or MemorySpill()
         self.evict_after_s = evict_after_s
+        self.memory_bytes = memory_bytes
+        """Idle tiles stay in memory while the tiles take no more than this (None: idle
+        tiles leave at once)."""
+        self._uses = 0
         self.active: dict[TileKey, Tile] = {}
         self.versions: dict[TileKey, int] = {}
         self.spilled = 0
@@ -167,8 +176,10 @@ class TileStore:
 
     # -- tiles in and out of memory -------------------------------------------------
     def tile(self, key: TileKey) -> Tile:
+        self._uses += 1
         tile = self.active.get(key)
         if tile is not None:
+            tile.last_use = self._uses
             return tile
         stored = self.spill.load(key)
         if stored is None:
@@ -190,17 +201,30 @@ class TileStore:
                 }
             self.reloaded += 1
         tile.version = self.versions.get(key, 0)
+        tile.last_use = self._uses
         self.active[key] = tile
         return tile
 
     def evict_idle(self, now: float, keep: set[TileKey] | None = None) -> list[TileImage]:
         """Spill the tiles no frame has touched for ``evict_after_s`` (rendering them one
-        last time if they changed); returns those final renders."""
-        out = []
-        for key in [k for k, t in self.active.items() if now - t.last_touch > self.evict_after_s]:
-            tile = self.active[key]
-            if keep is not None and key in keep:
-                continue
+        last time if they changed), the least recently used first and, with a
+        ``memory_bytes`` budget, only while the tiles in memory take more; returns those
+        final renders."""
+        out: list[TileImage] = []
+        idle = [
+            t
+            for k, t in self.active.items()
+            if now - t.last_touch > self.evict_after_s and (keep is None or k not in keep)
+        ]
+        if not idle:
+            return out
+        idle.sort(key=lambda t: t.last_use)
+        held = self.nbytes
+        for tile in idle:
+            if self.memory_bytes is not None and held <= self.memory_bytes:
+                break
+            key = tile.key
+            held -= tile.nbytes
             if tile.dirty or tile.rendered is None:
                 out.append(self.render(key))
             assert tile.rendered is not None
@@ -333,7 +357,9 @@ class TileStore:
         must show at once), leaving refinements of covered pixels for a full render.
         deferred: render the pixels redraws changed too (not with ``new_only``).
         """
-        tile = self.tile(key)
+        tile = self.active.get(key)  # rendering is not a use (``Tile.last_use``)
+        if tile is None:
+            tile = self.tile(key)
         size = self.grid.tile_px
         keep_changed: npt.NDArray[np.bool_] | None = None
         deferred = deferred and not new_only

@@ -1,7 +1,9 @@
 """``seamap bench``: the streaming engine in-process over a simulated survey, measured.
 
-The simulator renders the pings and navigation in the same process (``tools.sim.stream``)
-and only the time spent inside the engine counts. Reported: milliseconds per frame per
+The simulator renders the pings and navigation in a process of its own
+(``tools.sim.stream``), as the sonar and the autopilot are other machines on the boat:
+the memory measured is the engine's alone, and only the time spent inside the engine
+counts. Reported: milliseconds per frame per
 stage and in total, frames per second, the multiple of real time at 10 Hz, peak and
 current memory (RSS), the growth of memory per thousand frames (a straight line fitted
 to the second half of the run, when the working set has settled), and the latency from
@@ -12,6 +14,8 @@ waited to render, plus the time it took to process).
 from __future__ import annotations
 
 import math
+import multiprocessing
+import queue
 import tempfile
 import time
 from collections.abc import Iterator
@@ -24,12 +28,100 @@ import numpy as np
 from mapping import kernels
 from mapping.samples import Ping
 from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
+from seamap.errors import SeamapError
 from seamap.tilespill import DiskSpill
+
+_BATCH = 64
+"""Events a message from the simulator's process carries."""
+_AHEAD = 16
+"""Messages the simulator may run ahead of the engine (about 1,000 events)."""
+
+
+def _simulate_into(
+    out: Any, scenario: str, seed: int, overrides: dict[str, Any], pings_only: bool
+) -> None:
+    """The simulator's process: the stream's set-up, then its events in batches, then
+    None (or one line, if the simulator fails)."""
+    from tools.sim.stream import survey_events
+
+    try:
+        stream = survey_events(scenario, seed, **overrides)
+        out.put(("setup", stream.site_config, stream.ping_count))
+        batch: list[Any] = []
+        for event in stream.events:
+            if pings_only and not isinstance(event[1], Ping):
+                continue
+            batch.append(event)
+            if len(batch) == _BATCH:
+                out.put(("events", batch))
+                batch = []
+        out.put(("events", batch))
+        out.put(("end",))
+    except SeamapError as error:
+        out.put(("error", str(error)))
+    except Exception as error:  # one line to the parent, not a traceback
+        out.put(("error", f"the simulator failed: {type(error).__name__}: {error}"))
+
+
+class SimulatedFeed:
+    """A simulated survey's events from a process of its own (spawned: the simulator's
+    world and its set-up's peak stay out of the engine's memory)."""
+
+    def __init__(
+        self, scenario: str, seed: int, overrides: dict[str, Any], pings_only: bool = False
+    ) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._queue: Any = context.Queue(maxsize=_AHEAD)
+        self._process = context.Process(
+            target=_simulate_into,
+            args=(self._queue, scenario, seed, overrides, pings_only),
+            name="seamap-bench-simulator",
+            daemon=True,
+        )
+        self._process.start()
+        message = self._next()
+        if message[0] != "setup":
+            self.close()
+            raise SeamapError(f"bench: the simulator sent {message[0]!r} before its set-up")
+        self.site_config = message[1]
+        self.ping_count: int = message[2]
+
+    def _next(self) -> tuple[Any, ...]:
+        while True:
+            try:
+                message: tuple[Any, ...] = self._queue.get(timeout=1.0)
+            except queue.Empty:
+                if not self._process.is_alive():
+                    raise SeamapError(
+                        f"bench: the simulator's process ended (exit code "
+                        f"{self._process.exitcode}) without finishing its survey"
+                    ) from None
+                continue
+            if message[0] == "error":
+                self.close()
+                raise SeamapError(message[1])
+            return message
+
+    def events(self) -> Iterator[tuple[float, Any]]:
+        try:
+            while True:
+                message = self._next()
+                if message[0] == "end":
+                    break
+                yield from message[1]
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self._process.is_alive():
+            self._process.terminate()
+        self._process.join(timeout=10.0)
+        self._queue.close()
 
 
 def reset_peak_rss() -> None:
-    """Start the kernel's peak-RSS counter afresh (Linux), so the peak is the engine's and
-    not the simulator's set-up."""
+    """Start the kernel's peak-RSS counter afresh (Linux), so the peak is the engine's
+    and not the start-up's (the kernels' compile)."""
     try:
         with open("/proc/self/clear_refs", "w", encoding="ascii") as refs:
             refs.write("5")
@@ -133,13 +225,14 @@ def run_bench(
     progress: Any = None,
 ) -> BenchResult:
     from seamap.replay import mount_from_config, pipeline_params
-    from tools.sim.stream import survey_events
 
     if max_pings is not None:
         overrides = {**overrides, "max_pings": max_pings}
-    stream = survey_events(scenario, seed, **overrides)
+    stream = SimulatedFeed(scenario, seed, overrides)
     config = stream.site_config
-    params = params or StreamingParams(pipeline=pipeline_params(config))
+    params = params or StreamingParams(
+        pipeline=pipeline_params(config), tile_memory_mb=config.daemon.tile_memory_mb
+    )
     ping_time: list[float] = []
     latencies: list[float] = []
     tiles_published = 0
@@ -168,9 +261,9 @@ def run_bench(
     engine_s = 0.0
     stall = 0.0
     frames = 0
-    for _, sample in stream.events:
+    for _, sample in stream.events():
         started = time.perf_counter()
-        engine.add(sample)  # type: ignore[arg-type]
+        engine.add(sample)
         spent = time.perf_counter() - started
         engine_s += spent
         stall = max(stall, spent)
@@ -200,9 +293,12 @@ def run_bench(
     if final_pass:
 
         def pings_again() -> Iterator[Ping]:
-            for _, sample in survey_events(scenario, seed, **overrides).events:
-                if isinstance(sample, Ping):
+            again = SimulatedFeed(scenario, seed, overrides, pings_only=True)
+            try:
+                for _, sample in again.events():
                     yield sample
+            finally:
+                again.close()
 
         started = time.perf_counter()
         final_spill = DiskSpill(Path(spill_dir.name) / "final")

@@ -37,6 +37,9 @@ class DaemonConfig:
     max_backlog_frames: int = 20
     """Sonar frames allowed to wait for the mapping engine; newer frames beyond this are
     skipped live (counted; they stay recorded and the survey-end pass maps them)."""
+    tile_memory_mb: float = 256.0
+    """Live mosaic tiles the boat has left stay in memory, the least recently used going
+    to disk first, while all tiles take no more than this (MiB; a tile is 5.3 MB)."""
     final_pass: bool = True
     """Run the survey-end pass (the whole survey re-solved, the result folder written)
     when a survey ends and on SIGTERM."""
@@ -168,6 +171,7 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("daemon", "health_interval_s"): (0.1, 86400.0),
     ("daemon", "min_free_mb"): (0.0, 1e9),
     ("daemon", "max_backlog_frames"): (1, 10000),
+    ("daemon", "tile_memory_mb"): (0.0, 1e6),
     ("sonar", "range_m"): (0.1, 120.0),
     ("sonar", "gain_percent"): (0.0, 100.0),
     ("sonar", "gamma"): (0, 255),

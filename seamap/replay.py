@@ -167,11 +167,14 @@ def stream_survey(
     progress: Callable[[str, int, int], None] | None = None,
     spill: TileSpill | None = None,
     final_spill: TileSpill | None = None,
+    tile_memory_mb: float | None = 256.0,
 ) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     """The streaming engine fed with the logs in arrival order (as the daemon would be),
     then its survey-end pass. Returns the final result and the live one (the live poses
     and tiles as they stood before the survey-end pass) with the engine's statistics."""
-    engine = StreamingEngine(mount, StreamingParams(pipeline=params), spill=spill)
+    engine = StreamingEngine(
+        mount, StreamingParams(pipeline=params, tile_memory_mb=tile_memory_mb), spill=spill
+    )
     arrivals: Iterator[Sample] = heapq.merge(
         nav.imu, nav.gnss, nav.heading, nav.attitude, pings(), key=lambda sample: sample.time
     )
@@ -229,6 +232,7 @@ def replay(
             result, live = stream_survey(
                 pings, samples, mount, params, progress,
                 DiskSpill(spill_root / "live"), DiskSpill(spill_root / "final"),
+                config.daemon.tile_memory_mb,
             )  # fmt: skip
         else:
             result = map_survey(

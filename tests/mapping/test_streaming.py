@@ -107,7 +107,10 @@ def test_memory_follows_the_area_not_the_survey_length() -> None:
     # 100 s along a lane at 0.5 m/s, the sonar at the field day's 5 Hz (the hectare's 10
     # would only add pings: memory follows the area worked and how long tiles wait).
     hectare = survey_events("hectare", 2, max_pings=500, n_beams=32, ping_rate_hz=5.0)
-    params = StreamingParams(pipeline=pipeline_params(hectare.site_config), evict_after_s=10.0)
+    # Idle tiles wait in memory up to 32 MB (six tiles), then on disk.
+    params = StreamingParams(
+        pipeline=pipeline_params(hectare.site_config), evict_after_s=10.0, tile_memory_mb=32.0
+    )
     engine = StreamingEngine(mount_from_config(hectare.site_config.sonar), params)
     peak_tiles = peak_live = 0
     for _, sample in hectare.events:

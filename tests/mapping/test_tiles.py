@@ -124,3 +124,61 @@ def test_a_redraw_shows_at_the_slower_pace_and_whenever_the_tile_leaves() -> Non
     store.remove(0, [(0, 0)], deferred=True)
     (last,) = store.evict_idle(now=10.0)
     assert not last.values.any()  # the frame taken out shows as taken out
+
+
+def test_idle_tiles_stay_within_the_memory_budget_least_recently_used_leaving_first() -> None:
+    tile_bytes = TILES.tile_px**2 * (1 + 2 + 2) * BlendParams().top_n + TILES.tile_px**2
+    spill = MemorySpill()
+    store = TileStore(TILES, spill=spill, evict_after_s=1.0, memory_bytes=2 * tile_bytes)
+    image, score, mask = frame(0.5)
+    # Four tiles side by side, a frame in each at t = 0..3; the first is used again last.
+    for k in range(4):
+        store.insert(k, image, score, mask, GRID, pose(1.28 * k + 0.2, 0.1), time=float(k))
+    store.tile((0, 0))
+    store.render_dirty()
+    store.evict_idle(now=3.5)  # idle: tiles 0, 1 and 2; tile 3 is still worked
+    # Two tiles' worth stay: the one still worked and the one used last (tile 0).
+    assert sorted(store.active) == [(0, 0), (3, 0)]
+    assert sorted(spill.keys()) == [(1, 0), (2, 0)]
+    store.evict_idle(now=10.0)
+    assert sorted(store.active) == [(0, 0), (3, 0)]  # within the budget: nothing leaves
+
+
+def test_the_memory_budget_changes_where_tiles_wait_not_what_they_show() -> None:
+    rng = np.random.default_rng(3)
+    image, score, mask = frame(0.5)
+    runs = []
+    for budget in (0, None, 10**9):
+        store = TileStore(
+            TILES, spill=MemorySpill(), evict_after_s=1.0,
+            memory_bytes=None if budget is None else budget,
+        )  # fmt: skip
+        where: dict[int, list[tuple[int, int]]] = {}
+        rng = np.random.default_rng(3)
+        for k in range(120):
+            # Frames along lanes back and forth over six tiles, some moved again later.
+            east = 0.2 + 0.06 * (k % 60) if (k // 60) % 2 == 0 else 3.8 - 0.06 * (k % 60)
+            pixels = image * np.float32(rng.uniform(0.5, 1.5))
+            where[k] = store.insert(
+                k, pixels, score, mask, GRID, pose(east, 0.1 + 0.5 * (k // 60)), time=0.1 * k
+            )
+            if k >= 30 and k % 7 == 0:
+                moved = k - 30
+                store.remove(moved, where[moved], deferred=True)
+                where[moved] = store.insert(
+                    moved,
+                    pixels,
+                    score * np.float32(1.1),
+                    mask,
+                    GRID,
+                    pose(0.2 + 0.06 * (moved % 60), 0.12),
+                    time=0.1 * moved,
+                )
+            if k % 5 == 0:
+                store.render_dirty()
+                store.evict_idle(0.1 * k)
+        runs.append({t.key: t.values for t in store.rendered_tiles()})
+    assert runs[0].keys() == runs[1].keys() == runs[2].keys() and len(runs[0]) >= 3
+    for key in runs[0]:
+        np.testing.assert_array_equal(runs[0][key], runs[1][key])
+        np.testing.assert_array_equal(runs[0][key], runs[2][key])
