@@ -8,9 +8,11 @@ that names it. The keys of ``docs/CONTRACT.md`` are fixed; more are added here.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 import tomllib
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -168,21 +170,85 @@ _CHOICES: dict[tuple[str, str], tuple[Any, ...]] = {
 }
 
 _RANGES: dict[tuple[str, str], tuple[float, float]] = {
+    # Seconds between health lines: a tenth of a second to a day.
     ("daemon", "health_interval_s"): (0.1, 86400.0),
     ("daemon", "min_free_mb"): (0.0, 1e9),
     ("daemon", "max_backlog_frames"): (1, 10000),
     ("daemon", "tile_memory_mb"): (0.0, 1e6),
+    # Where the sonar sits on a small boat: within 10 m of the antenna.
+    ("sonar", "mount_x_m"): (-10.0, 10.0),
+    ("sonar", "mount_y_m"): (-10.0, 10.0),
+    ("sonar", "mount_z_m"): (-10.0, 10.0),
+    ("sonar", "mount_yaw_deg"): (-360.0, 360.0),
+    # A downward tilt: level (0) to straight down (90).
+    ("sonar", "tilt_deg"): (0.0, 90.0),
+    # Above the seabed: 5 cm (a sonar on a frame) to 100 m (deeper than the sonar sees).
+    ("sonar", "altitude_m"): (0.05, 100.0),
     ("sonar", "range_m"): (0.1, 120.0),
     ("sonar", "gain_percent"): (0.0, 100.0),
     ("sonar", "gamma"): (0, 255),
     ("sonar", "tcp_port"): (1, 65535),
     ("sonar", "status_port"): (1, 65535),
+    ("mavlink", "baud"): (1200, 12_000_000),
+    ("mavlink", "declination_deg"): (-180.0, 180.0),
+    # Mosaic pixels from 5 mm (the sonar's finest range cell is 2.4 mm) to 1 m.
+    ("mapping", "mosaic_res_m"): (0.005, 1.0),
+    ("mapping", "lambda_local"): (1e-6, 1e12),
+    ("mapping", "alpha"): (1e-9, 1e9),
+    ("mapping", "tau_p_m"): (0.001, 100.0),
+    ("mapping", "tau_a_deg"): (0.01, 180.0),
     ("mapping", "gnss_white_sigma_m"): (0.01, 100.0),
     ("mapping", "gnss_bias_sigma_m"): (0.01, 100.0),
     ("mapping", "gnss_bias_tau_s"): (1.0, 1e5),
     ("mapping", "gnss_lag_s"): (0.0, 2.0),
     ("mapping", "sonar_latency_s"): (0.0, 2.0),
 }
+
+
+def _vehicle_id(value: str) -> str | None:
+    if not value or "/" in value or any(c in value for c in "*$?#") or value != value.strip():
+        return "must be a non-empty id without '/', '*', '$', '?', '#' or surrounding spaces"
+    return None
+
+
+def _not_empty(value: str) -> str | None:
+    return "must not be empty" if not value.strip() else None
+
+
+def _sonar_address(value: str) -> str | None:
+    if value == "auto":
+        return None
+    try:
+        ipaddress.IPv4Address(value)
+    except ValueError:
+        return 'must be "auto" or an IPv4 address such as "192.168.2.4"'
+    return None
+
+
+def _locator(value: str) -> str | None:
+    protocol, slash, rest = value.partition("/")
+    host, colon, port = rest.rpartition(":")
+    if not slash or not protocol or not colon or not host:
+        return 'must be a zenoh locator such as "tcp/127.0.0.1:7447"'
+    port = port.split("#", 1)[0]
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        return f"has no port 0..65535 ({value!r})"
+    return None
+
+
+_TEXT: dict[tuple[str, str], Callable[[str], str | None]] = {
+    ("daemon", "vehicle"): _vehicle_id,
+    ("daemon", "state_dir"): _not_empty,
+    ("sonar", "address"): _sonar_address,
+    ("mavlink", "url"): _not_empty,
+    ("zenoh", "listen"): _locator,
+    ("zenoh", "connect"): _locator,
+}
+"""Checks of text values (of each item, for lists): None, or why the value is wrong.
+``("zenoh", "config_file")`` is free: empty means none, and the file is read when used."""
+
+FREE_KEYS = frozenset({("zenoh", "config_file")})
+"""Keys whose type is their only check (true/false keys are also only typed)."""
 
 
 def _coerce(where: str, value: Any, annotation: Any) -> Any:
@@ -235,6 +301,13 @@ def _section(name: str, cls: type[Any], table: Any) -> Any:
             raise SeamapError(
                 f"config: [{name}] {key} = {value!r} is outside {bounds[0]:g}..{bounds[1]:g}"
             )
+        check = _TEXT.get((name, key))
+        if check is not None:
+            items = values[key] if isinstance(values[key], list) else [values[key]]
+            for item in items:
+                reason = check(item)
+                if reason is not None:
+                    raise SeamapError(f"config: [{name}] {key} = {item!r} {reason}")
     return cls(**values)
 
 
@@ -247,12 +320,35 @@ def config_from_dict(data: dict[str, Any]) -> SiteConfig:
             known = ", ".join(f"[{n}]" for n in hints)
             raise SeamapError(f"config: unknown table [{name}] (known: {known})")
         sections[name] = _section(name, hints[name], table)
-    config = SiteConfig(**sections)
-    if "/" in config.daemon.vehicle or not config.daemon.vehicle:
-        raise SeamapError(
-            f"config: [daemon] vehicle {config.daemon.vehicle!r} must be a non-empty id without '/'"
-        )
-    return config
+    return SiteConfig(**sections)
+
+
+def checked_keys() -> dict[tuple[str, str], str]:
+    """Every key of the site file and how its value is checked beyond its type:
+    "choice", "range", "text", "free" or "bool" (the property tests walk this)."""
+    out: dict[tuple[str, str], str] = {}
+    for table, cls in typing.get_type_hints(SiteConfig).items():
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            key = (table, f.name)
+            if key in _CHOICES:
+                out[key] = "choice"
+            elif key in _RANGES:
+                out[key] = "range"
+            elif key in _TEXT:
+                out[key] = "text"
+            elif key in FREE_KEYS:
+                out[key] = "free"
+            elif hints[f.name] is bool:
+                out[key] = "bool"
+            else:
+                raise TypeError(f"config key [{table}] {f.name} has no check")  # a bug
+    return out
+
+
+def key_rule(table: str, key: str) -> Any:
+    """The choices, the (low, high) range or the text check of a key (None: none)."""
+    return _CHOICES.get((table, key)) or _RANGES.get((table, key)) or _TEXT.get((table, key))
 
 
 def load_config(path: str | Path | None) -> SiteConfig:

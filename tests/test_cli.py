@@ -133,3 +133,44 @@ def test_bench_reports_the_numbers_we_steer_by(tmp_path: Path) -> None:
     assert report["memory_samples"][-1][0] == 40
     assert all(rss > 0 for _, rss in report["memory_samples"])
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["run", "--config", "{site}"],
+        [
+            "replay",
+            "--config",
+            "{site}",
+            "--sonar",
+            "{dir}/a.oculus",
+            "--nav",
+            "{dir}/a.tlog",
+            "--out",
+            "{dir}/out",
+        ],
+        ["ctl", "--config", "{site}", "status"],
+        ["shore", "--config", "{site}", "--out", "{dir}/shore", "--duration", "1"],
+        [
+            "survey",
+            "plan",
+            "--config",
+            "{site}",
+            "--area",
+            "{dir}/area.geojson",
+            "--out",
+            "{dir}/plan.plan",
+        ],
+    ],
+)
+def test_every_command_reading_the_site_file_refuses_a_bad_value(
+    tmp_path: Path, command: list[str]
+) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text("[mapping]\nmosaic_res_m = -0.02\n")
+    for name in ("a.oculus", "a.tlog", "area.geojson"):
+        (tmp_path / name).write_bytes(b"x")
+    result = seamap(*[part.format(dir=tmp_path, site=site) for part in command])
+    assert_one_line_error(result, "[mapping] mosaic_res_m = -0.02 is outside")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "shore").exists()

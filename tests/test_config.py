@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from seamap.config import SiteConfig, dump_config, load_config
+from seamap.config import (
+    SiteConfig,
+    checked_keys,
+    config_from_dict,
+    dump_config,
+    key_rule,
+    load_config,
+)
 from seamap.errors import SeamapError
 
 CONTRACT_EXAMPLE = """
@@ -74,7 +84,16 @@ def test_unknown_table_is_an_error_naming_it(tmp_path: Path) -> None:
         ("[daemon]\nsurvey_autostart = 1\n", r"survey_autostart must be true or false"),
         ('[zenoh]\nlisten = "tcp/0.0.0.0:7447"\n', r"\[zenoh\] listen must be a list"),
         ('[mavlink]\nheading_source = "gyro"\n', r"heading_source = 'gyro' is not one of"),
-        ('[daemon]\nvehicle = "a/b"\n', r"vehicle 'a/b' must be a non-empty id without '/'"),
+        ('[daemon]\nvehicle = "a/b"\n', r"vehicle = 'a/b' must be a non-empty id without '/'"),
+        ("[mapping]\nmosaic_res_m = -0.02\n", r"\[mapping\] mosaic_res_m = -0.02 is outside"),
+        (
+            '[sonar]\naddress = "sonar.local"\n',
+            r"address = 'sonar.local' must be \"auto\" or an IPv4",
+        ),
+        (
+            '[zenoh]\nlisten = ["0.0.0.0:7447"]\n',
+            r"listen = '0.0.0.0:7447' must be a zenoh locator",
+        ),
         ("[sonar]\ntilt_deg = nan\n", r"tilt_deg must be finite"),
     ],
 )
@@ -95,3 +114,85 @@ def test_dump_round_trips(tmp_path: Path) -> None:
         write(tmp_path, '[sonar]\ntilt_deg = 12.5\n[zenoh]\nconnect = ["tcp/127.0.0.1:7447"]\n')
     )
     assert load_config(write(tmp_path, dump_config(config))) == config
+
+
+KEYS = sorted(checked_keys())
+
+
+def test_every_key_has_its_check() -> None:
+    # checked_keys raises for a key without one; every table's keys are walked.
+    kinds = checked_keys()
+    assert len(kinds) == sum(len(vars(table)) for table in vars(SiteConfig()).values())
+    assert {kinds[k] for k in kinds} <= {"choice", "range", "text", "free", "bool"}
+
+
+def _bad_value(table: str, key: str, data: st.DataObject) -> object:
+    kind = checked_keys()[(table, key)]
+    rule = key_rule(table, key)
+    default = getattr(getattr(SiteConfig(), table), key)
+    if kind == "choice":
+        if isinstance(default, str):
+            return data.draw(st.text(max_size=12).filter(lambda v: v not in rule))
+        return data.draw(st.integers(-(10**6), 10**6).filter(lambda v: v not in rule))
+    if kind == "range":
+        low, high = rule
+        span = max(abs(low), abs(high), 1.0)
+        below = st.floats(-1e12 * span, low, exclude_max=True, allow_nan=False)
+        above = st.floats(high, 1e12 * span, exclude_min=True, allow_nan=False)
+        value = data.draw(st.one_of(below, above))
+        if isinstance(default, int):
+            value = math.floor(value) if value < low else math.ceil(value)
+            if low <= value <= high:  # rounding brought it back in
+                value = int(high) + 1
+        return value
+    assert kind == "text"
+    wrong = {
+        ("daemon", "vehicle"): st.sampled_from(["", "a/b", "boat*", " boat", "x#"]),
+        ("daemon", "state_dir"): st.sampled_from(["", "   "]),
+        ("sonar", "address"): st.sampled_from(["sonar", "256.1.1.1", "10.0.0", ""]),
+        ("mavlink", "url"): st.sampled_from(["", " "]),
+        ("zenoh", "listen"): st.sampled_from([["127.0.0.1:7447"], ["tcp/127.0.0.1"], ["tcp/:1"]]),
+        ("zenoh", "connect"): st.sampled_from([["tcp/h:99999"], ["tcp"], ["/x:1"]]),
+    }
+    return data.draw(wrong[(table, key)])
+
+
+def _good_value(table: str, key: str, data: st.DataObject) -> object:
+    kind = checked_keys()[(table, key)]
+    rule = key_rule(table, key)
+    default = getattr(getattr(SiteConfig(), table), key)
+    if kind == "choice":
+        return data.draw(st.sampled_from(rule))
+    if kind == "range":
+        if isinstance(default, int) and not isinstance(default, bool):
+            return data.draw(st.integers(int(rule[0]), int(rule[1])))
+        return data.draw(st.floats(rule[0], rule[1], allow_nan=False))
+    if kind == "bool":
+        return data.draw(st.booleans())
+    return default
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow], deadline=None)
+@given(
+    st.sampled_from([k for k in KEYS if checked_keys()[k] in ("choice", "range", "text")]),
+    st.data(),
+)
+def test_a_value_outside_its_range_or_choices_is_one_error_naming_the_key(
+    key: tuple[str, str], data: st.DataObject
+) -> None:
+    table, name = key
+    value = _bad_value(table, name, data)
+    with pytest.raises(SeamapError, match=rf"^config: \[{table}\] {name}\b") as error:
+        config_from_dict({table: {name: value}})
+    assert "\n" not in str(error.value)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow], deadline=None)
+@given(st.sampled_from(KEYS), st.data())
+def test_a_value_within_its_range_or_choices_is_taken(
+    key: tuple[str, str], data: st.DataObject
+) -> None:
+    table, name = key
+    value = _good_value(table, name, data)
+    config = config_from_dict({table: {name: value}})
+    assert getattr(getattr(config, table), name) == value
