@@ -146,6 +146,8 @@ class HealthMonitor:
             "skipped": mapper.stats.frames_skipped + engine.frames_skipped,
             "backlog": mapper.backlog_frames,
             "engine_restarts": mapper.stats.restarts,
+            "tiles_not_spilled": engine.tile_spill_failures,
+            "tile_spill_error": engine.tile_spill_error,
         }
 
     @staticmethod

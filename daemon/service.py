@@ -31,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import os
 import shutil
 import signal
@@ -49,6 +50,7 @@ from daemon.recording import SurveyRecorder
 from daemon.supervisor import Supervisor
 from daemon.survey import (
     SurveyState,
+    disk_full,
     new_survey_id,
     surveys_dir,
     unfinished,
@@ -69,6 +71,8 @@ from seamap.zenoh_io import open_session, session_config
 log = logging.getLogger(__name__)
 
 RECORDER_POLL_S = 0.25
+DEFERRED_PASS_CHECK_S = 10.0
+"""How often a survey-end pass deferred by a full disk looks for space again."""
 LIVE_TILES = "live-tiles"
 """Folder (in the survey folder) where the live map's idle tiles wait; removed at the end."""
 
@@ -89,6 +93,8 @@ class Daemon:
         self.tiles_published = 0
         self._survey_dir: Path | None = None
         self._passes: dict[str, asyncio.Task[None]] = {}
+        self._deferred: dict[str, SurveyState] = {}
+        """Surveys whose survey-end pass waits for disk space."""
         self._pass_progress: dict[str, str] = {}
         self.publisher: ZenohPublisher | None = None
         self._shutdown = asyncio.Event()
@@ -115,6 +121,7 @@ class Daemon:
             ("watchdog", self._watchdog_task),
             ("control", self._control_task),
             ("zenoh", self._zenoh_task),
+            ("deferred passes", self._deferred_task),
         ):
             self.supervisor.spawn(name, task)
         self._recover()
@@ -193,7 +200,7 @@ class Daemon:
             if state.state == "recording":
                 state.state, state.ended = "finishing", time.time()
                 state.reason = state.reason or "interrupted"
-                write_state(surveys_dir(self.state_dir) / state.id, state)
+                self._save_state(surveys_dir(self.state_dir) / state.id, state)
             log.info(
                 "rerunning an interrupted survey-end pass", extra={"fields": {"survey": state.id}}
             )
@@ -224,7 +231,7 @@ class Daemon:
             fsync_in_background=True,
         )
         state.segments = max(state.segments + 1, recorder.stats.segments)
-        write_state(survey_dir, state)
+        self._save_state(survey_dir, state)
         params = StreamingParams(
             pipeline=pipeline_params(self.config),
             tile_memory_mb=self.config.daemon.tile_memory_mb,
@@ -272,7 +279,7 @@ class Daemon:
         assert self._survey_dir is not None
         if mapper is not None and recorder is not None:
             state.live[str(recorder.stats.segment)] = self._save_live(mapper, self._survey_dir)
-        write_state(self._survey_dir, state)
+        self._save_state(self._survey_dir, state)
         log.info(
             "survey ended",
             extra={
@@ -325,6 +332,56 @@ class Daemon:
                 log.warning("cannot write the live trajectory", extra={"fields": {"reason": exc}})
         return live
 
+    @staticmethod
+    def _save_state(survey_dir: Path, state: SurveyState) -> bool:
+        """Write ``survey.json`` (``daemon.survey.write_state``: the folder's reserve is
+        given up for it on a full disk); a failure is one logged line, never a crash."""
+        try:
+            write_state(survey_dir, state)
+        except OSError as exc:
+            log.error(
+                "cannot write the survey state",
+                extra={
+                    "fields": {
+                        "survey": state.id,
+                        "state": state.state,
+                        "reason": exc.strerror or str(exc),
+                    }
+                },
+            )
+            return False
+        return True
+
+    def _room_for_pass(self) -> tuple[bool, float]:
+        """Whether the state disk has ``min_free_mb`` free for a survey-end pass, and how
+        many MiB it has."""
+        try:
+            free = shutil.disk_usage(self.state_dir).free / 2**20
+        except OSError:
+            return True, math.nan
+        return free >= self.config.daemon.min_free_mb, free
+
+    def _defer_pass(self, state: SurveyState, why: str) -> None:
+        """Leave the survey ``finishing`` with the reason: the pass runs when space returns
+        (checked every ``DEFERRED_PASS_CHECK_S`` while the daemon runs, and at start-up)."""
+        state.state, state.reason = "finishing", why
+        self._deferred[state.id] = state
+        log.warning(
+            "survey-end pass deferred", extra={"fields": {"survey": state.id, "reason": why}}
+        )
+
+    async def _deferred_task(self) -> None:
+        """Start deferred survey-end passes once the disk has room again."""
+        while True:
+            await asyncio.sleep(DEFERRED_PASS_CHECK_S)
+            if not self._deferred or self._shutdown.is_set() or not self._room_for_pass()[0]:
+                continue
+            for survey_id, state in list(self._deferred.items()):
+                del self._deferred[survey_id]
+                log.info("disk space is back: running the deferred survey-end pass",
+                         extra={"fields": {"survey": survey_id}})  # fmt: skip
+                self._start_pass(state)
+
     def _start_pass(self, state: SurveyState) -> asyncio.Task[None]:
         task = asyncio.create_task(self._final_pass(state), name=f"final-pass-{state.id}")
         self._passes[state.id] = task
@@ -337,25 +394,43 @@ class Daemon:
         self.parts.final_passes = self._pass_progress
         if not self.config.daemon.final_pass:
             state.state, state.result = "done", {"final_pass": False}
-            write_state(survey_dir, state)
+            self._save_state(survey_dir, state)
             self._pass_progress.pop(state.id, None)
+            return
+        room, free = self._room_for_pass()
+        if not room:
+            self._defer_pass(
+                state,
+                f"survey-end pass deferred: {free:.0f} MiB free on {self.state_dir}, less "
+                f"than [daemon] min_free_mb ({self.config.daemon.min_free_mb:g}); it runs "
+                "when space returns (recordings intact)",
+            )
+            self._pass_progress.pop(state.id, None)
+            self._save_state(survey_dir, state)
             return
         started = time.monotonic()
         keepalive = asyncio.create_task(self._extend_stop_timeout(state.id))
         try:
             report = await asyncio.to_thread(self._replay, survey_dir, state.id)
-        except SeamapError as exc:
-            state.state, state.reason = "failed", str(exc)
-            log.error(
-                "survey-end pass failed", extra={"fields": {"survey": state.id, "reason": str(exc)}}
-            )
         except Exception as exc:
-            state.state, state.reason = "failed", f"{type(exc).__name__}: {exc}"
-            log.error(
-                "survey-end pass failed",
-                extra={"fields": {"survey": state.id, "reason": state.reason}},
-            )
-            log.debug("survey-end pass failure", exc_info=True)
+            if disk_full(exc) or not self._room_for_pass()[0]:
+                # The disk filled while the pass wrote: not the survey's fault.
+                self._defer_pass(
+                    state,
+                    f"survey-end pass deferred: the disk of {self.state_dir} filled while "
+                    "it ran; it runs again when space returns (recordings intact)",
+                )
+            else:
+                reason = (
+                    str(exc) if isinstance(exc, SeamapError) else f"{type(exc).__name__}: {exc}"
+                )
+                state.state, state.reason = "failed", reason
+                log.error(
+                    "survey-end pass failed",
+                    extra={"fields": {"survey": state.id, "reason": reason}},
+                )
+                if not isinstance(exc, SeamapError):
+                    log.debug("survey-end pass failure", exc_info=True)
         else:
             frames = report["frames"]
             state.state = "done"
@@ -381,8 +456,9 @@ class Daemon:
         finally:
             keepalive.cancel()
             self._pass_progress.pop(state.id, None)
-        shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
-        write_state(survey_dir, state)
+        if state.state != "finishing":
+            shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
+        self._save_state(survey_dir, state)
 
     def _replay(self, survey_dir: Path, survey_id: str) -> dict[str, Any]:
         from seamap.replay import replay_survey

@@ -6,11 +6,16 @@ recordings stay intact and ``seamap replay --survey`` can retry). The state file
 replaced atomically, so a crash at any moment leaves either the old or the new state;
 the daemon reads it at start-up to resume a survey that was recording (a new segment)
 or to redo a survey-end pass that was cut short.
+
+A full disk must not cost the state: each survey folder holds a reserve file
+(``.survey.reserve``, 256 KiB allocated when the survey opens), given up when a state
+write meets ENOSPC so that the write goes through, and taken again once space returns.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
@@ -21,6 +26,10 @@ from typing import Any, Literal
 
 State = Literal["recording", "finishing", "done", "failed"]
 STATE_FILE = "survey.json"
+RESERVE_FILE = ".survey.reserve"
+RESERVE_BYTES = 256 * 1024
+"""Room kept for the state file (a few KiB) when the disk fills."""
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 _ID = re.compile(r"^\d{8}-\d{6}(-\d+)?$")
 
 
@@ -59,22 +68,75 @@ def new_survey_id(state_dir: str | os.PathLike[str], now: float | None = None) -
     return candidate
 
 
+def reserve_space(survey_dir: Path) -> bool:
+    """Allocate the folder's reserve file if it is missing; False if there is no room."""
+    path = survey_dir / RESERVE_FILE
+    try:
+        if path.stat().st_size >= RESERVE_BYTES:
+            return True
+    except OSError:
+        pass
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o600)
+        try:
+            os.posix_fallocate(fd, 0, RESERVE_BYTES)
+        finally:
+            os.close(fd)
+    except OSError:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        return False
+    return True
+
+
 def write_state(survey_dir: Path, state: SurveyState) -> None:
-    """Replace ``survey.json`` atomically (temp file, fsync, rename)."""
+    """Replace ``survey.json`` atomically (temp file, fsync, rename). On a full disk the
+    folder's reserve is given up for it (and taken again at a later write with room);
+    OSError only if even that cannot make room."""
+    text = json.dumps(asdict(state), indent=2) + "\n"
+    try:
+        _replace(survey_dir, text)
+    except OSError as exc:
+        if exc.errno not in DISK_FULL:
+            raise
+        with contextlib.suppress(OSError):
+            (survey_dir / RESERVE_FILE).unlink()
+        _replace(survey_dir, text)
+        return
+    reserve_space(survey_dir)
+
+
+def _replace(survey_dir: Path, text: str) -> None:
     path = survey_dir / STATE_FILE
     tmp = path.with_name(f".{STATE_FILE}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(asdict(state), f, indent=2)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     with contextlib.suppress(OSError):
         fd = os.open(survey_dir, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether an error (or one it was raised from) is a full disk or quota."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in DISK_FULL:
+            return True
+        if "No space left on device" in str(seen) or "Disk quota exceeded" in str(seen):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def read_state(survey_dir: Path) -> SurveyState | None:

@@ -189,6 +189,10 @@ class StreamStats:
     """Survey time moved frames waited to be drawn again, summed: the drawn map's lag
     behind the re-solve (``redraw_wait_mean_s`` a frame)."""
     redraw_wait_max_s: float = 0.0
+    tile_spill_failures: int = 0
+    """Idle tiles that could not go to disk (kept in memory) and why the latest could not:
+    a full disk, say."""
+    tile_spill_error: str | None = None
     rejected: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
 
@@ -992,6 +996,8 @@ class StreamingEngine:
         keep.update(key for tiles in self._redraw_recent for key in tiles)
         for image in self.tiles.evict_idle(now, keep):
             self._publish(image)
+        self.stats.tile_spill_failures = self.tiles.spill_failures
+        self.stats.tile_spill_error = self.tiles.spill_error
 
     def _publish(self, image: TileImage) -> None:
         frames = tuple(self._pending_frames.pop(image.key, ()))

@@ -19,6 +19,7 @@ stack; the live map accepts that small loss, and the survey-end pass renders fro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -46,6 +47,10 @@ FanPoints = npt.NDArray[np.float64]
 def frame_layers(image: FloatImage, score: FloatImage, mask: npt.NDArray[np.bool_]) -> FloatImage:
     """A frame as the tiles warp it: one (rows, cols, 3) stack of image, score, mask."""
     return np.dstack([image, score, mask.astype(np.float32)])
+
+
+SPILL_RETRY_S = 30.0
+"""Survey time after a failed spill before tiles are spilled again."""
 
 
 class TileSpill(Protocol):
@@ -160,6 +165,10 @@ class TileStore:
         self.spill: TileSpill = spill or MemorySpill()
         self.evict_after_s = evict_after_s
         self.memory_bytes = memory_bytes
+        self.spill_failures = 0
+        self.spill_error: str | None = None
+        """Why the latest spill failed (a full disk, say): the tile stayed in memory."""
+        self._spill_retry_at = -math.inf
         """Idle tiles stay in memory while the tiles take no more than this (None: idle
         tiles leave at once)."""
         self._uses = 0
@@ -211,6 +220,8 @@ class TileStore:
         ``memory_bytes`` budget, only while the tiles in memory take more; returns those
         final renders."""
         out: list[TileImage] = []
+        if now < self._spill_retry_at:
+            return out
         idle = [
             t
             for k, t in self.active.items()
@@ -238,7 +249,15 @@ class TileStore:
             if moving:
                 # Frames that may still move (the live re-solve) keep where they went.
                 arrays["boxes"] = np.array(moving, np.int64).reshape(-1, 5)
-            self.spill.save(key, arrays)
+            try:
+                self.spill.save(key, arrays)
+            except OSError as exc:
+                # The disk is full (say): tiles stay in memory and the map goes on; the
+                # spill is tried again SPILL_RETRY_S later.
+                self.spill_failures += 1
+                self.spill_error = f"{exc.strerror or exc}"
+                self._spill_retry_at = now + SPILL_RETRY_S
+                break
             del self.active[key]
             self.spilled += 1
         return out

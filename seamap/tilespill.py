@@ -16,6 +16,7 @@ load old tiles that leave again 30 s later): their number is what must come down
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -64,14 +65,20 @@ class DiskSpill:
             [[name, v.dtype.str, list(v.shape)] for name, v in contiguous.items()]
         ).encode("ascii")
         chunker = self._compressor.chunker(size=sum(v.nbytes for v in contiguous.values()))
-        with open(tmp, "wb") as out:
-            out.write(_MAGIC + struct.pack("<I", len(header)) + header)
-            for values in contiguous.values():
-                for chunk in chunker.compress(values.data.cast("B")):
+        try:
+            with open(tmp, "wb") as out:
+                out.write(_MAGIC + struct.pack("<I", len(header)) + header)
+                for values in contiguous.values():
+                    for chunk in chunker.compress(values.data.cast("B")):
+                        out.write(chunk)
+                for chunk in chunker.finish():
                     out.write(chunk)
-            for chunk in chunker.finish():
-                out.write(chunk)
-        os.replace(tmp, path)
+            os.replace(tmp, path)
+        except OSError:
+            # A full disk (say): no half file left, the tile's older file (if any) intact.
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
         self.bytes_written += path.stat().st_size
         self._keys.add(key)
 

@@ -141,7 +141,10 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
         ("[daemon]\nsurvey_autostrat = true\n", "unknown key 'survey_autostrat' in [daemon]"),
         ("[sonar]\nping_rate_hz = 12\n", "ping_rate_hz = 12 is not one of 2, 5, 10, 15, 40"),
         ("[daemon]\nmax_backlog_frames = 0\n", "max_backlog_frames = 0 is outside 1..10000"),
-        ('[zenoh]\nlisten = ["tcp/0.0.0.0"]\n', "[zenoh] listen 'tcp/0.0.0.0': no HOST:PORT"),
+        (
+            '[zenoh]\nlisten = ["tcp/0.0.0.0"]\n',
+            "[zenoh] listen = 'tcp/0.0.0.0' must be a zenoh locator",
+        ),
     ],
 )
 def test_bad_config_is_one_line(tmp_path: Path, table: str, expected: str) -> None:
