@@ -16,6 +16,14 @@ What is recovered: every message after garbage, after a bogus magic, after a can
 whose header or ping struct is inconsistent, and after a cut message (B and everything
 after it), whatever the chunking of the input.
 
+Framed but not recognised: a candidate that fails those checks (an unknown msgId, a
+version out of range, a ping whose struct disagrees with its size: a corrupt message) is
+still emitted when its own header frames it, that is when no plausible message starts
+inside the span it claims and one does start right where it ends (or the link goes
+quiet there). The receiver records it with the rest, so nothing the sonar framed is
+lost before parsing, and the parser then rejects it (``messages_unrecognised`` counts
+them). Without that confirmation its bytes are skipped as garbage.
+
 What is not: the cut message itself (its tail is gone). A cut message followed by bytes
 that start no valid message within the span it claims (e.g. the sonar restarted
 mid-message and the next message begins later) is emitted with a wrong tail: there is no
@@ -78,7 +86,9 @@ class OculusFramer:
     """Incremental framer: ``feed`` bytes as they arrive, get whole messages back.
 
     Never raises on any input. Counters: ``bytes_skipped`` (bytes dropped as not part of a
-    message), ``messages_out``, ``resyncs`` (times framing was lost and searched for again).
+    message), ``messages_out`` (all emitted), ``messages_unrecognised`` (emitted though
+    they fail the checks, see the module doc), ``resyncs`` (times framing was lost and
+    searched for again).
     The buffer never holds more than one message of at most ``max_payload`` bytes plus the
     bytes of the latest ``feed``.
     """
@@ -87,6 +97,7 @@ class OculusFramer:
         self.max_payload = max_payload
         self.bytes_skipped = 0
         self.messages_out = 0
+        self.messages_unrecognised = 0
         self.resyncs = 0
         self._buf = bytearray()
         self._scan_from = 2  # where the embedded-header scan of the current candidate resumes
@@ -151,8 +162,20 @@ class OculusFramer:
             return b""
         verdict = self._check_at(0)
         if verdict == _INVALID:
-            self._skip(1)
-            return b""
+            framed = self._framed_unrecognised(final)
+            if framed is None:
+                return None
+            if not framed:
+                self._skip(1)
+                return b""
+            total = HEADER_SIZE + MessageHeader.unpack(buf[:HEADER_SIZE]).payload_size
+            message = bytes(buf[:total])
+            del buf[:total]
+            self._scan_from = 2
+            self._skipping = False
+            self.messages_out += 1
+            self.messages_unrecognised += 1
+            return message
         if len(buf) < HEADER_SIZE:
             return None
         total = HEADER_SIZE + MessageHeader.unpack(buf).payload_size
@@ -192,6 +215,40 @@ class OculusFramer:
         except OculusFormatError:
             return _INVALID
         return _VALID
+
+    def _framed_unrecognised(self, final: bool) -> bool | None:
+        """Whether the candidate at 0, which fails the checks, is framed by its header
+        all the same (see the module doc); None while that depends on bytes to come."""
+        buf = self._buf
+        if len(buf) < HEADER_SIZE:
+            return None if not final and self._magic_frames_partial() else False
+        header = MessageHeader.unpack(bytes(buf[:HEADER_SIZE]))
+        if header.payload_size > self.max_payload:
+            return False
+        total = header.message_size
+        embedded = self._find_embedded(total, final)
+        if embedded is None:
+            return None
+        if embedded > 0:
+            return False  # a plausible message inside: the candidate is garbage or cut
+        if len(buf) < total:
+            return None if not final else False
+        if len(buf) == total:
+            return True if final else None  # the link went quiet right at its end
+        rest = bytes(buf[total : total + 2])
+        if not OCULUS_MAGIC.startswith(rest):
+            return False
+        if len(rest) < 2:
+            return None if not final else False
+        after = self._check_at(total)
+        if after == _NEED_MORE:
+            return None if not final else False
+        return after == _VALID
+
+    def _magic_frames_partial(self) -> bool:
+        """Whether a header cut short at the end of the buffer may still frame a message."""
+        part = bytes(self._buf[:HEADER_SIZE])
+        return len(part) < 16 and part.startswith(OCULUS_MAGIC)
 
     def _partial_header_ok(self, pos: int) -> bool:
         """Whether the header bytes present at ``pos`` (fewer than 16) could still be real."""

@@ -230,3 +230,49 @@ def test_garbage_in_the_stream_is_skipped_and_counted() -> None:
         assert link.stats.parse_errors == 0 and link.stats.reconnects == 0
 
     run(main)
+
+
+def test_corrupt_messages_are_recorded_before_the_parser_rejects_them() -> None:
+    """A flipped message id and a ping with impossible geometry reach ``on_message`` (the
+    recording) like every framed message; only the parser drops them."""
+    from drivers.oculus.protocol import SIMPLE_FIRE_V2_SIZE
+
+    fire = FireSettings().to_message()
+    messages = [
+        bytearray(encode_ping(make_ping(n_beams=32, n_ranges=20, seed=k, ping_id=k), fire))
+        for k in range(6)
+    ]
+    messages[1][6:8] = (0x5A5A).to_bytes(2, "little")  # no such message id
+    n_beams_at = SIMPLE_FIRE_V2_SIZE + 83
+    assert int.from_bytes(messages[3][n_beams_at : n_beams_at + 2], "little") == 32
+    messages[3][n_beams_at : n_beams_at + 2] = bytes(2)  # a ping of zero beams
+    sent = [bytes(m) for m in messages]
+
+    async def main() -> None:
+        handlers: list[asyncio.Task[object]] = []
+
+        async def serve(_: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            handlers.append(asyncio.current_task())  # type: ignore[arg-type]
+            for message in sent:
+                writer.write(message)
+                await writer.drain()
+                await asyncio.sleep(0.02)
+            await asyncio.sleep(5.0)
+
+        server = await asyncio.start_server(serve, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        recorded: list[bytes] = []
+        link = OculusLink(
+            "127.0.0.1", tcp_port=port, timing=FAST,
+            on_message=lambda message, _: recorded.append(message),
+        )  # fmt: skip
+        async with server, contextlib.aclosing(link.pings()) as stream:
+            got = await take(stream, 4)
+        for handler in handlers:
+            handler.cancel()
+        await asyncio.gather(*handlers, return_exceptions=True)
+        assert [p.ping_id for p in got] == [0, 2, 4, 5]
+        assert recorded == sent
+        assert link.stats.parse_errors == 1 and link.stats.bytes_skipped == 0
+
+    run(main)
