@@ -7,8 +7,11 @@ while after each SimpleFire, so the link re-sends it every ``fire_interval_s``.
 The link never raises on what the sonar sends: bytes that frame as nothing are counted in
 ``LinkStats.bytes_skipped``, pings that do not parse in ``parse_errors``. A lost connection,
 or no ping for ``silence_timeout_s``, closes the socket and reconnects after an exponential,
-capped backoff. Iterate ``pings()`` inside ``contextlib.aclosing`` (or cancel the task that
-iterates it) so that the firing task and the socket are closed when you stop.
+capped backoff, cut short as soon as the sonar's status broadcast is heard again (the
+link listens on the status port all along): a sonar back from a power cut is pinging
+again within a second of its first status, not after the backoff's 4 or 8 s. Iterate
+``pings()`` inside ``contextlib.aclosing`` (or cancel the task that iterates it) so that
+the firing task and the sockets are closed when you stop.
 """
 
 from __future__ import annotations
@@ -113,6 +116,10 @@ class LinkStats:
     bytes_received: int = 0
     bytes_skipped: int = 0
     parse_errors: int = 0
+    statuses: int = 0
+    """Status messages heard from the sonar (UDP)."""
+    last_status_time: float | None = None
+    """When the latest was heard (UNIX s)."""
     sonar_address: str | None = None
     last_status: StatusMessage | None = field(default=None, repr=False)
 
@@ -121,19 +128,18 @@ class _Silence(Exception):
     """No ping for ``silence_timeout_s``."""
 
 
-class _StatusListener(asyncio.DatagramProtocol):
-    """Resolves a future with the first valid OculusStatusMsg and its sender address."""
+class _StatusWatch(asyncio.DatagramProtocol):
+    """Hands every valid OculusStatusMsg and its sender's address to ``on_status``."""
 
-    def __init__(self, found: asyncio.Future[tuple[StatusMessage, str]]) -> None:
-        self._found = found
+    def __init__(self, on_status: Callable[[StatusMessage, str], None]) -> None:
+        self._on_status = on_status
 
     def datagram_received(self, data: bytes, addr: tuple[str | bytes, int]) -> None:
         try:
             status = StatusMessage.unpack(data)
         except OculusFormatError:
             return
-        if not self._found.done():
-            self._found.set_result((status, str(addr[0])))
+        self._on_status(status, str(addr[0]))
 
 
 class OculusLink:
@@ -165,6 +171,8 @@ class OculusLink:
         self.stats = LinkStats()
         self._framer = OculusFramer()
         self._host: str | None = None if address == "auto" else address
+        self._heard: asyncio.Event | None = None
+        self._found: asyncio.Future[str] | None = None
 
     @staticmethod
     def fire_from_config(config: SonarConfig) -> FireSettings:
@@ -201,29 +209,89 @@ class OculusLink:
             on_message=on_message,
         )
 
+    def _on_status(self, status: StatusMessage, host: str) -> None:
+        if self._host is not None and host != self._host:
+            return  # another sonar on the network
+        self.stats.statuses += 1
+        self.stats.last_status = status
+        self.stats.last_status_time = time.time()
+        if self._heard is not None:
+            self._heard.set()
+        if self._found is not None and not self._found.done():
+            self._found.set_result(host)
+
+    async def _watch_status(self) -> asyncio.BaseTransport | None:
+        """Listen on the status port for as long as the link lives (None if the port
+        cannot be had: the reconnects then wait out their backoff)."""
+        loop = asyncio.get_running_loop()
+        try:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _StatusWatch(self._on_status),
+                local_addr=(self.status_host, self.status_port),
+                reuse_port=False,
+            )
+        except OSError as e:
+            if self.address == "auto":
+                raise  # nothing else can find the sonar
+            log.warning(
+                "Oculus: cannot listen for status on port %d (%s): reconnects wait out "
+                "their backoff", self.status_port, e,
+            )  # fmt: skip
+            return None
+        return transport
+
     async def discover(self) -> str:
         """Wait for a status message on the status port; return the sender's IPv4 address."""
-        loop = asyncio.get_running_loop()
-        found: asyncio.Future[tuple[StatusMessage, str]] = loop.create_future()
-        transport, _ = await loop.create_datagram_endpoint(
-            lambda: _StatusListener(found),
-            local_addr=(self.status_host, self.status_port),
-            reuse_port=False,
-        )
+        transport = await self._watch_status()
         try:
-            status, host = await found
+            return await self._discover()
         finally:
-            transport.close()
-        self.stats.last_status = status
+            if transport is not None:
+                transport.close()
+
+    async def _discover(self) -> str:
+        self._found = asyncio.get_running_loop().create_future()
+        try:
+            host = await self._found
+        finally:
+            self._found = None
+        status = self.stats.last_status
+        assert status is not None
         log.info("Oculus sonar %d (part %d) at %s", status.device_id, status.part_number, host)
         return host
 
+    async def _pause(self, backoff: float) -> bool:
+        """Wait ``backoff`` seconds before reconnecting, or less if the sonar's status is
+        heard meanwhile; whether it was."""
+        if self._heard is None:
+            await asyncio.sleep(backoff)
+            return False
+        self._heard.clear()
+        try:
+            await asyncio.wait_for(self._heard.wait(), backoff)
+        except TimeoutError:
+            return False
+        log.info("Oculus: status heard from the sonar, reconnecting now")
+        return True
+
     async def pings(self) -> AsyncGenerator[Ping, None]:
         """Pings as they arrive (stamped on receipt, UNIX s), across reconnects, forever."""
+        self._heard = asyncio.Event()
+        watch = await self._watch_status()
+        try:
+            async with contextlib.aclosing(self._connected_pings()) as pings:
+                async for ping in pings:
+                    yield ping
+        finally:
+            if watch is not None:
+                watch.close()
+            self._heard = None
+
+    async def _connected_pings(self) -> AsyncGenerator[Ping, None]:
         backoff = self.timing.backoff_initial_s
         while True:
             if self._host is None:
-                self._host = await self.discover()
+                self._host = await self._discover()
             try:
                 reader, writer = await asyncio.wait_for(
                     asyncio.open_connection(self._host, self.tcp_port),
@@ -233,8 +301,12 @@ class OculusLink:
                 log.warning("Oculus %s:%d: connect failed (%s)", self._host, self.tcp_port, e)
                 if self.address == "auto":
                     self._host = None  # the sonar may have moved: listen again
-                await asyncio.sleep(backoff)
-                backoff = min(2.0 * backoff, self.timing.backoff_max_s)
+                heard = await self._pause(backoff)
+                backoff = (
+                    self.timing.backoff_initial_s
+                    if heard
+                    else min(2.0 * backoff, self.timing.backoff_max_s)
+                )
                 continue
             self.stats.connects += 1
             self.stats.reconnects = self.stats.connects - 1
@@ -259,8 +331,12 @@ class OculusLink:
                 with contextlib.suppress(asyncio.CancelledError):
                     await firing
                 writer.transport.abort()
-            await asyncio.sleep(backoff)
-            backoff = min(2.0 * backoff, self.timing.backoff_max_s)
+            heard = await self._pause(backoff)
+            backoff = (
+                self.timing.backoff_initial_s
+                if heard
+                else min(2.0 * backoff, self.timing.backoff_max_s)
+            )
 
     async def _keep_firing(self, writer: asyncio.StreamWriter) -> None:
         """Send SimpleFire now and every ``fire_interval_s``; stop quietly on a dead socket."""

@@ -276,3 +276,39 @@ def test_corrupt_messages_are_recorded_before_the_parser_rejects_them() -> None:
         assert link.stats.parse_errors == 1 and link.stats.bytes_skipped == 0
 
     run(main)
+
+
+def test_a_sonar_back_from_a_cut_is_pinging_within_a_second_of_its_status() -> None:
+    """A 4.5 s power cut (TCP and status gone) has grown the backoff to 4 s; the sonar's
+    first status after it brings the link back at once, not when the backoff ends."""
+    status_port = free_udp_port()
+    timing = LinkTiming(
+        fire_interval_s=0.1, silence_timeout_s=1.0, connect_timeout_s=0.5, idle_flush_s=0.05
+    )  # the default backoff: 0.5 s doubling to 10 s
+
+    async def main() -> tuple[float, float]:
+        first = SonarEmulator(
+            source(), status_to=("127.0.0.1", status_port), status_interval_s=0.2, rate_hz=50.0
+        )
+        await first.start()
+        port = first.tcp_port
+        link = OculusLink("127.0.0.1", tcp_port=port, status_port=status_port, timing=timing)
+        async with contextlib.aclosing(link.pings()) as pings:
+            await take(pings, 3)
+            await first.close()  # the cut: no TCP, no status
+            waiting = asyncio.ensure_future(anext(pings))
+            await asyncio.sleep(4.5)
+            assert not waiting.done()
+            back = SonarEmulator(
+                source(), tcp_port=port, status_to=("127.0.0.1", status_port),
+                status_interval_s=1.0, rate_hz=50.0,
+            )  # fmt: skip
+            async with back:
+                started = time.monotonic()
+                await asyncio.wait_for(waiting, 6.0)
+                return time.monotonic() - started, link.stats.last_status_time or 0.0
+
+    delay, heard = asyncio.run(asyncio.wait_for(main(), 30.0))
+    # Its first status goes out as it starts; the connect follows it, then the first ping.
+    assert delay < 1.0, f"{delay:.2f} s from the sonar's return to its first ping"
+    assert heard > 0
