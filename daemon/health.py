@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 
 SONAR_SILENT_S = 2.0
 """No ping for this long: the sonar counts as down in the status."""
+SONAR_STATUS_LOST_S = 3.5
+"""Standing by, no status (broadcast about once a second) for this long: down."""
 GNSS_STALE_S = 5.0
 """No usable GNSS fix for this long while the autopilot talks: GNSS lost."""
 START_GRACE_S = 5.0
@@ -99,9 +101,14 @@ class HealthMonitor:
         if mono - then >= 1.0:
             self._sonar_rate = (link.stats.pings - pings) / (mono - then)
             self._sonar_pings = (mono, link.stats.pings)
-        up = parts.last_ping is not None and now - parts.last_ping < SONAR_SILENT_S
+        pinging = parts.last_ping is not None and now - parts.last_ping < SONAR_SILENT_S
+        heard = link.stats.last_status_time
+        # Standing by (no survey open), the sonar is up while its status is heard.
+        resting = link.standby and heard is not None and now - heard < SONAR_STATUS_LOST_S
         return {
-            "up": up,
+            "up": pinging or resting,
+            "standby": link.standby,
+            "last_status_age_s": None if heard is None else round(now - heard, 2),
             "address": link.stats.sonar_address,
             "pings": link.stats.pings,
             "rate_hz": round(self._sonar_rate, 2),

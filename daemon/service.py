@@ -94,6 +94,7 @@ class Daemon:
         self._survey_dir: Path | None = None
         self._passes: dict[str, asyncio.Task[None]] = {}
         self._deferred: dict[str, SurveyState] = {}
+        self._sonar_resting: bool | None = None
         """Surveys whose survey-end pass waits for disk space."""
         self._pass_progress: dict[str, str] = {}
         self.publisher: ZenohPublisher | None = None
@@ -247,6 +248,7 @@ class Daemon:
         )
         self.survey, self._survey_dir = state, survey_dir
         self.parts.recorder, self.parts.mapper, self.parts.survey = recorder, mapper, state.id
+        self._sonar_follows_survey()
         self.latest_pose, self.tiles_published = None, 0
         log.info(
             "survey resumed" if resumed else "survey started",
@@ -272,6 +274,7 @@ class Daemon:
         self.survey = None
         self.parts.recorder = self.parts.mapper = None
         self.parts.survey = None
+        self._sonar_follows_survey()
         if recorder is not None:
             recorder.close()
         stats = await mapper.finish() if mapper is not None else None
@@ -382,6 +385,23 @@ class Daemon:
                          extra={"fields": {"survey": survey_id}})  # fmt: skip
                 self._start_pass(state)
 
+    def _sonar_rests(self) -> bool:
+        """Whether the sonar should stand by now: no survey open and the config says so."""
+        return self.survey is None and self.config.sonar.standby_outside_surveys
+
+    def _sonar_follows_survey(self) -> None:
+        """Stand the sonar by or fire it, as the survey's state asks (said once a change)."""
+        link = self.parts.sonar
+        rest = self._sonar_rests()
+        if link is None or self._sonar_resting == rest:
+            return
+        self._sonar_resting = rest
+        link.set_standby(rest)
+        log.info(
+            "sonar standing by: no survey open" if rest else "sonar firing: survey open",
+            extra={"fields": {"survey": self.survey.id if self.survey else None}},
+        )
+
     def _start_pass(self, state: SurveyState) -> asyncio.Task[None]:
         task = asyncio.create_task(self._final_pass(state), name=f"final-pass-{state.id}")
         self._passes[state.id] = task
@@ -488,6 +508,8 @@ class Daemon:
     async def _sonar_task(self) -> None:
         link = OculusLink.from_config(self.config.sonar, on_message=self._on_sonar_message)
         self.parts.sonar = link
+        self._sonar_resting = None  # a new link: say what it is asked for
+        self._sonar_follows_survey()
         async with contextlib.aclosing(link.pings()) as pings:
             async for ping in pings:
                 self._on_ping(ping)

@@ -387,6 +387,8 @@ class FmtRegistrar:
         rows_m, cols_m = self.grid.shape
         inside[self.row0_t : self.row0_t + rows_m, self.col0_t : self.col0_t + cols_m] = self.mask
         fan = bearing[inside]
+        if fan.size == 0:
+            count = 1  # no fan pixel on the grid (a fan shorter than a grid row): one sector
         edges = np.quantile(fan, np.arange(1, count) / count) if fan.size else np.array([])
         blend = math.radians(self.params.sector_blend_deg)
         weights = np.empty((count, height, width), np.float32)

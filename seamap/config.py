@@ -80,6 +80,10 @@ class SonarConfig:
     """Sample size asked for: 8 or 16 bits."""
     send_gain: bool = True
     """Ask for the per-row gain words with each ping."""
+    standby_outside_surveys: bool = True
+    """Put the sonar in standby while no survey is open (it stops pinging: an M1200d
+    pinging in air, on the trailer, overheats) and fire it again when one opens; its
+    status broadcast is still watched."""
 
 
 HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")

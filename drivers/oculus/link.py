@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import AsyncGenerator, Callable
@@ -173,6 +174,8 @@ class OculusLink:
         self._host: str | None = None if address == "auto" else address
         self._heard: asyncio.Event | None = None
         self._found: asyncio.Future[str] | None = None
+        self._standby = False
+        self._fire_changed: asyncio.Event | None = None
 
     @staticmethod
     def fire_from_config(config: SonarConfig) -> FireSettings:
@@ -338,16 +341,44 @@ class OculusLink:
                 else min(2.0 * backoff, self.timing.backoff_max_s)
             )
 
+    @property
+    def standby(self) -> bool:
+        """Whether the sonar is asked to stand by (no pings; its status is still heard)."""
+        return self._standby
+
+    def set_standby(self, standby: bool) -> None:
+        """Ask the sonar to stand by (SimpleFire at ping rate standby: it stops pinging and
+        its transducer rests; an M1200d pinging in air overheats) or to ping again. Takes
+        effect at once on a live connection, else when it connects. While standing by, a
+        quiet sonar is not a dead link."""
+        if standby == self._standby:
+            return
+        self._standby = standby
+        log.info("Oculus: %s", "standing by" if standby else "pinging")
+        if self._fire_changed is not None:
+            self._fire_changed.set()
+
+    def _fire_message(self) -> bytes:
+        fire = self.fire
+        if self._standby:
+            fire = dataclasses.replace(fire, ping_rate=PingRate.STANDBY)
+        return fire.to_message().pack()
+
     async def _keep_firing(self, writer: asyncio.StreamWriter) -> None:
-        """Send SimpleFire now and every ``fire_interval_s``; stop quietly on a dead socket."""
-        message = self.fire.to_message().pack()
+        """Send SimpleFire (or standby) now, every ``fire_interval_s`` and at once when
+        ``set_standby`` changes it; stop quietly on a dead socket."""
+        changed = self._fire_changed = asyncio.Event()
         try:
             while True:
-                writer.write(message)
+                changed.clear()
+                writer.write(self._fire_message())
                 await writer.drain()
-                await asyncio.sleep(self.timing.fire_interval_s)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(changed.wait(), self.timing.fire_interval_s)
         except OSError:
             return  # the receive side sees the loss and reconnects
+        finally:
+            self._fire_changed = None
 
     async def _receive(self, reader: asyncio.StreamReader) -> AsyncGenerator[Ping, None]:
         """Pings from one connection; returns on EOF, raises _Silence on a quiet sonar.
@@ -359,6 +390,8 @@ class OculusLink:
         deadline = loop.time() + self.timing.silence_timeout_s
         last_data = time.time()
         while True:
+            if self._standby:
+                deadline = loop.time() + self.timing.silence_timeout_s  # quiet by request
             remaining = deadline - loop.time()
             if remaining <= 0:
                 raise _Silence
