@@ -65,6 +65,7 @@ from seamap.config import SiteConfig
 from seamap.errors import SeamapError
 from seamap.replay import mount_from_config, pipeline_params
 from seamap.results import write_trajectory
+from seamap.security import insecure_listen
 from seamap.tilespill import DiskSpill
 from seamap.zenoh_io import open_session, session_config
 
@@ -106,6 +107,14 @@ class Daemon:
 
     async def run(self) -> int:
         session_config(self.config.zenoh)  # a malformed [zenoh] is a start-up error
+        exposed = insecure_listen(self.config.zenoh.listen)
+        if exposed and not self.config.zenoh.allow_insecure:
+            raise SeamapError(
+                f"config: [zenoh] listen {exposed[0]!r} is plain, unauthenticated and open to "
+                "the network (anyone reaching it could stop surveys and publish as the boat): "
+                "run `seamap security init` and use its [zenoh] lines, listen on 127.0.0.1, "
+                "or set [zenoh] allow_insecure = true"
+            )
         self._prepare_state_dir()
         kernels.warm()  # the tiles' compiled loops, before the first ping needs them
         loop = asyncio.get_running_loop()

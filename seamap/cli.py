@@ -12,10 +12,21 @@ import sys
 from collections.abc import Sequence
 
 from seamap import __version__
-from seamap.commands import bench, ctl, demo, info, replay, run, shore, simulate, survey
+from seamap.commands import (
+    bench,
+    ctl,
+    demo,
+    info,
+    replay,
+    run,
+    security,
+    shore,
+    simulate,
+    survey,
+)
 from seamap.errors import SeamapError
 
-COMMANDS = (info, simulate, replay, run, ctl, shore, bench, demo, survey)
+COMMANDS = (info, simulate, replay, run, ctl, shore, bench, demo, security, survey)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -120,6 +120,11 @@ class ZenohConfig:
     config_file: str = ""
     """A zenoh JSON5 configuration file read first (TLS, user/password authentication,
     access control); mode, listen, connect and multicast_scouting above override it."""
+    allow_insecure: bool = False
+    """Let the daemon listen in plain TCP (or UDP, WebSocket) on an address other hosts
+    reach: anyone who reaches the port can then stop surveys and publish as the boat.
+    Off: such a listen endpoint stops the daemon at start; make a secure set with
+    `seamap security init` instead. Loopback endpoints are always allowed."""
 
 
 @dataclass(frozen=True)

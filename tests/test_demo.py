@@ -8,17 +8,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 SEAMAP = str(Path(sys.executable).parent / "seamap")
 
 
-def test_demo_runs_the_whole_system_on_loopback(tmp_path: Path) -> None:
+@pytest.mark.parametrize("secure", [False, True], ids=["plain", "secure"])
+def test_demo_runs_the_whole_system_on_loopback(tmp_path: Path, secure: bool) -> None:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     out = tmp_path / "demo"
     done = subprocess.run(
         [SEAMAP, "demo", "--out", str(out), "--max-pings", "80",
-         "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
+         "--zenoh-listen", f"tcp/127.0.0.1:{port}", *(["--secure"] if secure else [])],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout + done.stderr + (out / "daemon.log").read_text()
@@ -34,3 +37,6 @@ def test_demo_runs_the_whole_system_on_loopback(tmp_path: Path) -> None:
     shore = out / "shore" / "demo"
     assert (shore / survey.name / "mosaic.tif").is_file()
     assert (shore / "track.csv").read_text().startswith("time,lat,lon,east,north,heading_deg")
+    if secure:  # the same, over TLS with the set's certificates, password and rules
+        assert f"zenoh tls/127.0.0.1:{port} (secured by" in text
+        assert (out / "security" / "boat" / "boat.key").is_file()

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import math
 import os
@@ -31,7 +32,7 @@ import rasterio
 
 from daemon.control import request
 from drivers.oculus.logfile import iter_pings
-from seamap.config import ZenohConfig, config_from_dict, dump_config, load_config
+from seamap.config import SiteConfig, ZenohConfig, config_from_dict, dump_config, load_config
 from seamap.errors import SeamapError
 from seamap.zenoh_io import control_key, open_session
 from tools.emulators.playback import SurveyPlayback
@@ -51,6 +52,47 @@ class DemoOptions:
     seed: int = 1
     zenoh_listen: str = "tcp/127.0.0.1:7447"
     max_pings: int | None = None
+    secure: bool = False
+    """Run the link on a set ``seamap security init`` makes (TLS with certificates on both
+    sides, the shore's password, the boat's access rules), on the same port."""
+
+
+@dataclass(frozen=True)
+class _Link:
+    """The daemon's [zenoh] table and the shore's (a plain loopback one, or the set's)."""
+
+    boat: ZenohConfig
+    shore: ZenohConfig
+    shore_config: Path | None
+    """A site file holding the shore's [zenoh] (secure), else None (``--connect``)."""
+
+
+def _link(options: DemoOptions) -> _Link:
+    listen = options.zenoh_listen
+    connect = _connect_of(listen)
+    if not options.secure:
+        return _Link(
+            ZenohConfig(mode="peer", listen=[listen], connect=[]),
+            ZenohConfig(mode="client", listen=[], connect=[connect]),
+            None,
+        )
+    from seamap.security import init_security
+
+    port = int(listen.rsplit(":", 1)[1])
+    made = init_security(options.out / "security", VEHICLE, ["localhost", "127.0.0.1"], 1,
+                         port=port)  # fmt: skip
+    boat = ZenohConfig(
+        mode="peer", listen=[f"tls/127.0.0.1:{port}"], connect=[],
+        config_file=str((made.boat / "boat.json5").resolve()),
+    )  # fmt: skip
+    folder = made.shores[0]
+    shore = ZenohConfig(
+        mode="peer", listen=[], connect=[f"tls/127.0.0.1:{port}"],
+        config_file=str((folder / f"{folder.name}.json5").resolve()),
+    )  # fmt: skip
+    shore_site = options.out / "shore-site.toml"
+    shore_site.write_text(dump_config(SiteConfig(zenoh=shore)))
+    return _Link(boat, shore, shore_site)
 
 
 def _free_port(kind: int) -> int:
@@ -82,19 +124,24 @@ async def _live(options: DemoOptions, sim: Path) -> int:
     state_dir = out / "boat"
     shore_dir = out / "shore"
     mavlink_port = _free_port(2)  # SOCK_DGRAM
+    link = _link(options)
     async with SurveyPlayback(
         sim / "sonar.oculus", sim / "nav.tlog", mavlink="udp", mavlink_target_port=mavlink_port
     ) as play:
         config = _daemon_config(sim, out / "site.toml", state_dir, play.sonar.tcp_port,
-                                mavlink_port, options.zenoh_listen)  # fmt: skip
+                                mavlink_port, link.boat)  # fmt: skip
         _step(2, "starting the emulators, the boat daemon and the shore station on 127.0.0.1")
         print(f"      sonar emulator tcp/127.0.0.1:{play.sonar.tcp_port}, autopilot emulator "
-              f"-> udp/127.0.0.1:{mavlink_port}, zenoh {options.zenoh_listen}")  # fmt: skip
+              f"-> udp/127.0.0.1:{mavlink_port}, zenoh {link.boat.listen[0]}"
+              + (f" (secured by {out / 'security'})" if options.secure else ""))  # fmt: skip
         print(f"      daemon: seamap run --config {config} (log {out / 'daemon.log'})")
         daemon = await _spawn([SEAMAP, "run", "--config", str(config)], out / "daemon.log")
+        reach = (
+            ["--config", str(link.shore_config)] if link.shore_config is not None
+            else ["--connect", link.shore.connect[0]]
+        )  # fmt: skip
         shore = await _spawn(
-            [SEAMAP, "shore", "--connect", _connect_of(options.zenoh_listen),
-             "--vehicle", VEHICLE, "--out", str(shore_dir)],
+            [SEAMAP, "shore", *reach, "--vehicle", VEHICLE, "--out", str(shore_dir)],
             out / "shore.log",
         )  # fmt: skip
         print(f"      shore:  seamap shore --vehicle {VEHICLE} --out {shore_dir} "
@@ -104,7 +151,7 @@ async def _live(options: DemoOptions, sim: Path) -> int:
             _step(3, f"surveying: {play.pings_total} pings, about {play.pings_total / 10:.0f} s")
             status = await _follow(play, state_dir, daemon)
             _step(4, "survey end: a stop request over zenoh; the survey-end pass maps it again")
-            survey = await asyncio.to_thread(_stop_survey, options.zenoh_listen)
+            survey = await asyncio.to_thread(_stop_survey, link.shore)
             folder = state_dir / "surveys" / survey
             final = await _wait_done(folder, daemon)
             shore_tif = shore_dir / VEHICLE / survey / "mosaic.tif"
@@ -131,8 +178,9 @@ def _connect_of(listen: str) -> str:
 
 
 def _daemon_config(
-    sim: Path, path: Path, state_dir: Path, sonar_port: int, mavlink_port: int, listen: str
-) -> Path:
+    sim: Path, path: Path, state_dir: Path, sonar_port: int, mavlink_port: int,
+    zenoh_table: ZenohConfig,
+) -> Path:  # fmt: skip
     import tomllib
 
     data: dict[str, Any] = tomllib.loads((sim / "site.toml").read_text())
@@ -141,7 +189,7 @@ def _daemon_config(
     )
     data.setdefault("sonar", {}).update(address="127.0.0.1", tcp_port=sonar_port)
     data.setdefault("mavlink", {}).update(url=f"udpin:127.0.0.1:{mavlink_port}")
-    data["zenoh"] = {"mode": "peer", "listen": [listen], "connect": []}
+    data["zenoh"] = dataclasses.asdict(zenoh_table)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_config(config_from_dict(data)))
     return path
@@ -190,8 +238,8 @@ async def _follow(
     return await _status(state_dir) or status
 
 
-def _stop_survey(listen: str) -> str:
-    session = open_session(ZenohConfig(mode="client", listen=[], connect=[_connect_of(listen)]))
+def _stop_survey(shore: ZenohConfig) -> str:
+    session = open_session(shore)
     try:
         replies = list(
             session.get(control_key(VEHICLE), payload=b'{"action": "stop"}', timeout=10.0)

@@ -1,4 +1,4 @@
-"""``seamap demo [--out DIR] [--zenoh-listen ENDPOINT]``: the whole system on loopback
+"""``seamap demo [--out DIR] [--zenoh-listen ENDPOINT] [--secure]``: the whole system on loopback
 (``tools.demo``): emulators play a simulated survey, the daemon maps it live and publishes
 on zenoh, the shore station follows, and the result is scored against the truth."""
 
@@ -29,6 +29,11 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--scenario", default="quadrats", help="simulator scenario")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--max-pings", type=int, help="cut the survey short (pings)")
+    parser.add_argument(
+        "--secure", action="store_true",
+        help="run the zenoh link on a set `seamap security init` makes (in OUT/security): "
+        "TLS with certificates on both sides, the shore's password, the boat's access rules",
+    )  # fmt: skip
     parser.set_defaults(handler=run)
 
 
@@ -36,5 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from tools.demo import DemoOptions, run_demo
 
     return run_demo(
-        DemoOptions(args.out, args.scenario, args.seed, args.zenoh_listen, args.max_pings)
+        DemoOptions(
+            args.out, args.scenario, args.seed, args.zenoh_listen, args.max_pings, args.secure
+        )
     )

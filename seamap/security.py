@@ -1,0 +1,393 @@
+"""``seamap security init``: a working set of keys, certificates and zenoh files for one boat
+and its shore stations, so that the secure link is the easy one.
+
+The set (``OUT``):
+
+- ``ca.crt``, ``ca.key``: the set's own certificate authority (P-256, ten years). Keep
+  ``ca.key`` off the boat: whoever holds it can make certificates the boat trusts.
+- ``boat/``: ``ca.crt``, ``boat.crt`` / ``boat.key`` (the boat's TLS identity, naming every
+  ``--host`` it is reached by), ``zenoh-users.txt`` (one ``shore-N:password`` a line),
+  ``boat.json5`` (zenoh: TLS only, mutual TLS, user/password, the access rules of
+  ``systemd/zenoh-boat.json5``) and ``zenoh.toml`` (the ``[zenoh]`` lines of the boat's
+  site file).
+- ``shore-N/``: ``ca.crt``, ``shore-N.crt`` / ``shore-N.key`` (the shore's certificate,
+  for mutual TLS), ``shore-N.json5`` (its user and password: 0600) and ``zenoh.toml``.
+
+With the set, a peer must show a certificate of the set's CA *and* a shore's password to
+join the boat, and then may only follow it (subscribe, get tiles, pose and status) and
+ask for a survey to start or stop; whatever it puts or deletes never passes the boat. A
+peer without the set is refused at the TLS handshake. The paths inside the files are
+where the folders are written, or under ``--install-dir`` (for example ``/etc/seamap``:
+copy ``boat/`` there on the boat and ``shore-N/`` there on shore N).
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import os
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from seamap.errors import SeamapError
+
+CA_DAYS = 3650
+CERT_DAYS = 825
+"""Certificates expire after this many days (TLS clients refuse longer ones)."""
+
+
+@dataclass(frozen=True)
+class SecuritySet:
+    """What ``init_security`` wrote: the folders and the shores' user names."""
+
+    out: Path
+    boat: Path
+    shores: list[Path]
+    users: list[str]
+    port: int
+
+
+def _key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "seamap"),
+            x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+        ]
+    )
+
+
+def _certificate(
+    subject: str,
+    key: ec.EllipticCurvePrivateKey,
+    issuer: x509.Certificate | None,
+    issuer_key: ec.EllipticCurvePrivateKey,
+    days: int,
+    *,
+    ca: bool = False,
+    hosts: list[str] | None = None,
+    usage: x509.ObjectIdentifier | None = None,
+) -> x509.Certificate:
+    now = datetime.datetime.now(datetime.UTC)
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(_name(subject))
+        .issuer_name(issuer.subject if issuer is not None else _name(subject))
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=ca, path_length=0 if ca else None), True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
+    )
+    if ca:
+        builder = builder.add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False,
+                data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                crl_sign=True, encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )  # fmt: skip
+    else:
+        builder = builder.add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False,
+                data_encipherment=False, key_agreement=True, key_cert_sign=False,
+                crl_sign=False, encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )  # fmt: skip
+        assert issuer is not None and usage is not None
+        builder = builder.add_extension(x509.ExtendedKeyUsage([usage]), critical=False)
+        builder = builder.add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(issuer_key.public_key()), False
+        )
+    if hosts:
+        names: list[x509.GeneralName] = []
+        for host in hosts:
+            try:
+                names.append(x509.IPAddress(ipaddress.ip_address(host)))
+            except ValueError:
+                names.append(x509.DNSName(host))
+        builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
+    return builder.sign(issuer_key, hashes.SHA256())
+
+
+def _write(path: Path, data: bytes | str, mode: int = 0o644) -> None:
+    raw = data.encode() if isinstance(data, str) else data
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "wb") as out:
+        out.write(raw)
+    os.chmod(path, mode)
+
+
+def _pem(cert: x509.Certificate) -> bytes:
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+def _pem_key(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+
+
+def _check_host(host: str) -> None:
+    try:
+        ipaddress.ip_address(host)
+        return
+    except ValueError:
+        pass
+    labels = host.rstrip(".").split(".")
+    if not host or not all(
+        label and len(label) <= 63 and label.replace("-", "").isalnum() for label in labels
+    ):
+        raise SeamapError(f"--host {host!r}: not an IP address or a DNS name")
+
+
+def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
+    """The boat's zenoh configuration (the rules of ``systemd/zenoh-boat.json5``), its
+    files in ``folder``."""
+    return {
+        "mode": "peer",
+        "listen": {"endpoints": [f"tls/0.0.0.0:{port}"]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(folder / "ca.crt"),
+                    "listen_certificate": str(folder / "boat.crt"),
+                    "listen_private_key": str(folder / "boat.key"),
+                    "enable_mtls": True,
+                },
+            },
+            "auth": {"usrpwd": {"dictionary_file": str(folder / "zenoh-users.txt")}},
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": [
+                {
+                    "id": "shore-subscribe",
+                    "messages": [
+                        "declare_subscriber",
+                        "declare_liveliness_subscriber",
+                        "liveliness_query",
+                    ],
+                    "flows": ["ingress"],
+                    "permission": "allow",
+                    "key_exprs": ["seamap/**"],
+                },
+                {
+                    "id": "shore-query",
+                    "messages": ["query"],
+                    "flows": ["ingress"],
+                    "permission": "allow",
+                    "key_exprs": ["seamap/*/survey/**", "seamap/*/pose", "seamap/*/status"],
+                },
+                {
+                    "id": "shore-control",
+                    "messages": ["query"],
+                    "flows": ["ingress"],
+                    "permission": "allow",
+                    "key_exprs": ["seamap/*/control/survey"],
+                },
+                {
+                    "id": "boat-publish",
+                    "messages": ["put", "delete", "reply", "declare_queryable", "liveliness_token"],
+                    "flows": ["egress"],
+                    "permission": "allow",
+                    "key_exprs": ["seamap/**"],
+                },
+                {
+                    "id": "shore-never-publishes",
+                    "messages": ["put", "delete", "declare_queryable", "liveliness_token", "reply"],
+                    "flows": ["ingress"],
+                    "permission": "deny",
+                    "key_exprs": ["**"],
+                },
+            ],
+            "subjects": [{"id": "shores", "usernames": users}],
+            "policies": [
+                {
+                    "id": "shore-stations",
+                    "rules": [
+                        "shore-subscribe",
+                        "shore-query",
+                        "shore-control",
+                        "boat-publish",
+                        "shore-never-publishes",
+                    ],
+                    "subjects": ["shores"],
+                },
+            ],
+        },
+    }
+
+
+def shore_zenoh(folder: Path, user: str, password: str, boat: str, port: int) -> dict[str, object]:
+    """A shore's zenoh configuration: TLS to the boat at ``boat``, its certificate, its
+    user and password; its files in ``folder``."""
+    return {
+        "mode": "peer",
+        "connect": {"endpoints": [f"tls/{_bracket(boat)}:{port}"]},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(folder / "ca.crt"),
+                    "verify_name_on_connect": True,
+                    "enable_mtls": True,
+                    "connect_certificate": str(folder / f"{user}.crt"),
+                    "connect_private_key": str(folder / f"{user}.key"),
+                },
+            },
+            "auth": {"usrpwd": {"user": user, "password": password}},
+        },
+    }
+
+
+def _bracket(host: str) -> str:
+    try:
+        if ipaddress.ip_address(host).version == 6:
+            return f"[{host}]"
+    except ValueError:
+        pass
+    return host
+
+
+def _toml_lines(config_file: Path, listen: list[str], connect: list[str]) -> str:
+    return (
+        "[zenoh]\n"
+        f"config_file = {json.dumps(str(config_file))}\n"
+        f"listen = {json.dumps(listen)}\n"
+        f"connect = {json.dumps(connect)}\n"
+    )
+
+
+_HEADER = (
+    "// Written by `seamap security init` (seamap/security.py): TLS with mutual certificates,\n"
+    "// user/password, and the access rules of systemd/zenoh-boat.json5. JSON is JSON5.\n"
+)
+
+
+def init_security(
+    out: Path,
+    vehicle: str,
+    hosts: list[str],
+    shores: int = 1,
+    install_dir: Path | None = None,
+    port: int = 7447,
+) -> SecuritySet:
+    """Write the set (module doc) into ``out`` (which must not hold one already);
+    SeamapError in one line for a bad argument or an unwritable folder."""
+    if not vehicle or "/" in vehicle or any(c in vehicle for c in "*$?# "):
+        raise SeamapError(f"--vehicle {vehicle!r}: a non-empty id without '/', '*', '$', '?', '#'")
+    if not 1 <= shores <= 64:
+        raise SeamapError(f"--shores {shores}: must be 1..64")
+    if not 1 <= port <= 65535:
+        raise SeamapError(f"--port {port}: must be 1..65535")
+    hosts = hosts or ["localhost", "127.0.0.1"]
+    for host in hosts:
+        _check_host(host)
+    out = Path(out)
+    if (out / "ca.key").exists():
+        raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        return _write_set(out, vehicle, hosts, shores, install_dir, port)
+    except OSError as exc:
+        raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
+
+
+def _write_set(
+    out: Path, vehicle: str, hosts: list[str], shores: int, install_dir: Path | None, port: int
+) -> SecuritySet:
+    ca_key = _key()
+    ca = _certificate(f"seamap CA {vehicle}", ca_key, None, ca_key, CA_DAYS, ca=True)
+    _write(out / "ca.crt", _pem(ca))
+    _write(out / "ca.key", _pem_key(ca_key), 0o600)
+
+    def where(folder: Path) -> Path:
+        return folder.resolve() if install_dir is None else Path(install_dir)
+
+    boat = out / "boat"
+    boat.mkdir(exist_ok=True)
+    boat_key = _key()
+    boat_cert = _certificate(
+        vehicle, boat_key, ca, ca_key, CERT_DAYS, hosts=hosts,
+        usage=ExtendedKeyUsageOID.SERVER_AUTH,
+    )  # fmt: skip
+    _write(boat / "ca.crt", _pem(ca))
+    _write(boat / "boat.crt", _pem(boat_cert))
+    _write(boat / "boat.key", _pem_key(boat_key), 0o600)
+    users = [f"shore-{n}" for n in range(1, shores + 1)]
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
+    _write(boat / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()), 0o600)
+    boat_json5 = boat / "boat.json5"
+    _write(boat_json5, _HEADER + json.dumps(boat_zenoh(where(boat), users, port), indent=2) + "\n")
+    _write(
+        boat / "zenoh.toml",
+        "# The [zenoh] table of the boat's site file (seamap.toml):\n"
+        + _toml_lines(where(boat) / "boat.json5", [f"tls/0.0.0.0:{port}"], []),
+    )
+    shore_folders = []
+    for user in users:
+        folder = out / user
+        folder.mkdir(exist_ok=True)
+        key = _key()
+        cert = _certificate(user, key, ca, ca_key, CERT_DAYS, usage=ExtendedKeyUsageOID.CLIENT_AUTH)
+        _write(folder / "ca.crt", _pem(ca))
+        _write(folder / f"{user}.crt", _pem(cert))
+        _write(folder / f"{user}.key", _pem_key(key), 0o600)
+        config = shore_zenoh(where(folder), user, passwords[user], hosts[0], port)
+        _write(folder / f"{user}.json5", _HEADER + json.dumps(config, indent=2) + "\n", 0o600)
+        _write(
+            folder / "zenoh.toml",
+            f"# The [zenoh] table of {user}'s site file (`seamap shore --config`):\n"
+            + _toml_lines(
+                where(folder) / f"{user}.json5", [], [f"tls/{_bracket(hosts[0])}:{port}"]
+            ),
+        )
+        shore_folders.append(folder)
+    return SecuritySet(out, boat, shore_folders, users, port)
+
+
+_LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
+
+
+def insecure_listen(endpoints: list[str]) -> list[str]:
+    """The endpoints that listen unencrypted on an address other hosts can reach (plain
+    TCP, UDP or WebSocket on anything but loopback)."""
+    found = []
+    for endpoint in endpoints:
+        locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+        protocol, _, address = locator.partition("/")
+        if protocol not in ("tcp", "udp", "ws"):
+            continue
+        host = address.rpartition(":")[0].strip("[]")
+        if host in _LOOPBACK_NAMES:
+            continue
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                continue
+        except ValueError:
+            pass  # a host name other than localhost: reachable from elsewhere
+        found.append(endpoint)
+    return found
