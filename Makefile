@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest accuracy clean
+.PHONY: demo test lint typecheck pytest accuracy fuzz clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,13 @@ pytest: $(STAMP)
 # The accuracy matrix: simulated surveys replayed in every mode (hours; not in `make test`).
 accuracy: $(STAMP)
 	$(BIN)/python -m tools.accuracy --out $(ACCURACY_OUT) --jobs $(JOBS)
+
+# Fuzzing at depth: the framer and message parsers, the log readers (.oculus v1/v2, .tlog,
+# .bin) and the config loader, FUZZ_EXAMPLES generated and mutated inputs each (not in
+# `make test`, which runs the same tests with a few hundred).
+FUZZ_EXAMPLES ?= 100000
+fuzz: $(STAMP)
+	SEAMAP_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/pytest -q -m fuzz -n $(TEST_JOBS) -p no:cacheprovider
 
 clean:
 	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT)

@@ -289,6 +289,11 @@ def _coerce(where: str, value: Any, annotation: Any) -> Any:
     raise TypeError(f"unsupported config annotation {annotation!r}")  # a bug, not input
 
 
+def _shown(name: str) -> str:
+    """A name from the file, quoted, on one line whatever it holds."""
+    return repr(str(name))
+
+
 def _section(name: str, cls: type[Any], table: Any) -> Any:
     if not isinstance(table, dict):
         raise SeamapError(f"config: [{name}] must be a table")
@@ -298,7 +303,7 @@ def _section(name: str, cls: type[Any], table: Any) -> Any:
     for key, value in table.items():
         if key not in known:
             raise SeamapError(
-                f"config: unknown key '{key}' in [{name}] (known: {', '.join(sorted(known))})"
+                f"config: unknown key {_shown(key)} in [{name}] (known: {', '.join(sorted(known))})"
             )
         values[key] = _coerce(f"[{name}] {key}", value, hints[key])
         allowed = _CHOICES.get((name, key))
@@ -327,7 +332,7 @@ def config_from_dict(data: dict[str, Any]) -> SiteConfig:
     for name, table in data.items():
         if name not in hints:
             known = ", ".join(f"[{n}]" for n in hints)
-            raise SeamapError(f"config: unknown table [{name}] (known: {known})")
+            raise SeamapError(f"config: unknown table [{_shown(name)[1:-1]}] (known: {known})")
         sections[name] = _section(name, hints[name], table)
     return SiteConfig(**sections)
 

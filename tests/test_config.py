@@ -18,6 +18,7 @@ from seamap.config import (
     load_config,
 )
 from seamap.errors import SeamapError
+from tests.fuzzing import fuzz
 
 CONTRACT_EXAMPLE = """
 [daemon]
@@ -196,3 +197,47 @@ def test_a_value_within_its_range_or_choices_is_taken(
     value = _good_value(table, name, data)
     config = config_from_dict({table: {name: value}})
     assert getattr(getattr(config, table), name) == value
+
+
+_TOML_ATOMS = st.sampled_from(
+    ["[daemon]", "[sonar]", "[mapping]", "[zenoh]", "[mavlink]", "[x]", "=", "\n", '"', "'",
+     "[", "]", "{", "}", ",", "#", "true", "nan", "inf", "-", "1e999", "0x1F", "tilt_deg",
+     "listen", "mosaic_res_m", "vehicle", " ", "\\", "\u00e9", "[[a]]", "a.b", "\x00"]
+)  # fmt: skip
+_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner, max_size=3)
+    ),
+    max_leaves=6,
+)
+
+
+@pytest.mark.fuzz
+@fuzz(300)
+@given(text=st.lists(st.one_of(_TOML_ATOMS, st.text(max_size=6)), max_size=40))
+def test_any_text_as_a_site_file_is_a_config_or_one_seamap_error(
+    tmp_path_factory: pytest.TempPathFactory, text: list[str]
+) -> None:
+    path = tmp_path_factory.getbasetemp() / "fuzz-site.toml"
+    path.write_text("".join(text), encoding="utf-8", errors="surrogatepass")
+    try:
+        load_config(path)
+    except SeamapError as error:
+        assert "\n" not in str(error)
+
+
+@pytest.mark.fuzz
+@fuzz(300)
+@given(
+    table=st.sampled_from(["daemon", "sonar", "mavlink", "zenoh", "mapping", "other"]),
+    values=st.dictionaries(
+        st.one_of(st.sampled_from([k for _, k in KEYS]), st.text(max_size=10)), _VALUES,
+        max_size=4,
+    ),
+)  # fmt: skip
+def test_any_values_are_a_config_or_one_seamap_error(table: str, values: dict[str, object]) -> None:
+    try:
+        config_from_dict({table: values})
+    except SeamapError as error:
+        assert "\n" not in str(error)

@@ -13,13 +13,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from pymavlink import DFReader
 from pymavlink.dialects.v20 import all as mavlink
 
 from drivers.mavlink import NavLog, NavLogError, convert, read_nav_log, summarize_nav_log
 from tests.drivers import mavlink_fixtures as fx
+from tests.fuzzing import fuzz
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -498,11 +499,10 @@ def read_or_not_a_log(path: Path) -> None:
             assert "not a MAVLink log" in str(error)
 
 
-_SETTINGS = settings(
-    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+_SETTINGS = fuzz(150)
 
 
+@pytest.mark.fuzz
 @_SETTINGS
 @given(data=st.binary(min_size=1, max_size=3000))
 def test_random_bytes_never_crash(tmp_path: Path, data: bytes) -> None:
@@ -531,6 +531,7 @@ def mutate(data: bytes, mutations: list[tuple[str, int, bytes]]) -> bytes:
     return bytes(out)
 
 
+@pytest.mark.fuzz
 @_SETTINGS
 @given(mutations=st.lists(mutation, min_size=1, max_size=8), cut=st.integers(1, 20_000))
 def test_mutated_tlogs_never_crash(
@@ -541,6 +542,7 @@ def test_mutated_tlogs_never_crash(
     read_or_not_a_log(path)
 
 
+@pytest.mark.fuzz
 @_SETTINGS
 @given(mutations=st.lists(mutation, min_size=1, max_size=8), cut=st.integers(1, 20_000))
 def test_mutated_dataflash_never_crashes(

@@ -16,6 +16,7 @@ from drivers.oculus import (
     build_simple_ping,
 )
 from tests.drivers.test_oculus_protocol import REAL_PING_SIZE, make_ping, real_pings
+from tests.fuzzing import fuzz
 
 
 def _quiet_tail(message: bytes) -> bytes:
@@ -118,7 +119,8 @@ def test_a_complete_message_held_back_by_a_possible_header_is_flushed() -> None:
     assert framer.feed(dummy + POOL[5]) == [dummy, POOL[5]]
 
 
-@settings(max_examples=200, deadline=None)
+@pytest.mark.fuzz
+@fuzz(200)
 @given(data=st.binary(max_size=3000), cuts=st.lists(st.integers(0, 3000), max_size=6))
 def test_random_bytes_never_crash_the_framer(data: bytes, cuts: list[int]) -> None:
     framer = OculusFramer()
@@ -127,7 +129,8 @@ def test_random_bytes_never_crash_the_framer(data: bytes, cuts: list[int]) -> No
     assert framer.pending_bytes <= len(data)
 
 
-@settings(max_examples=100, deadline=None)
+@pytest.mark.fuzz
+@fuzz(100)
 @given(
     picks=st.lists(st.integers(0, len(POOL) - 1), min_size=1, max_size=6),
     edits=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=10),
@@ -160,7 +163,8 @@ def _is_subsequence(wanted: list[bytes], got: list[bytes]) -> bool:
     return all(any(m == g for g in remaining) for m in wanted)
 
 
-@settings(max_examples=150, deadline=None)
+@pytest.mark.fuzz
+@fuzz(150)
 @given(
     picks=st.lists(st.integers(0, len(POOL) - 1), min_size=1, max_size=5),
     garbage=st.lists(_garbage, min_size=6, max_size=6),

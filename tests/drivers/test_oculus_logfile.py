@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.oculus import (
@@ -32,6 +32,7 @@ from tests.drivers.test_oculus_protocol import (
     make_ping,
     real_pings,
 )
+from tests.fuzzing import fuzz
 
 FILE_HEADER_SIZE = 48
 ITEM_HEADER_SIZE = 40
@@ -402,9 +403,8 @@ def _read_all(path: Path) -> LogReadReport:
     return report
 
 
-@settings(
-    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@pytest.mark.fuzz
+@fuzz(150)
 @given(data=st.binary(max_size=2000))
 def test_random_bytes_after_a_log_header_never_crash_the_reader(
     tmp_path: Path, data: bytes
@@ -415,9 +415,8 @@ def test_random_bytes_after_a_log_header_never_crash_the_reader(
     assert report.pings == 0
 
 
-@settings(
-    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@pytest.mark.fuzz
+@fuzz(150)
 @given(
     edits=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),
     span=st.tuples(st.integers(0, 10**6), st.integers(0, 300)),

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.oculus import (
@@ -30,6 +30,7 @@ from drivers.oculus import (
 )
 from mapping.samples import Ping
 from seamap.errors import SeamapError
+from tests.fuzzing import fuzz
 
 DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "oculus"
 REAL_PING_SIZE = 182016
@@ -325,7 +326,8 @@ def test_24_bit_pings_are_reported_unsupported() -> None:
 _VALID_PING = build_simple_ping(make_ping(n_beams=16, n_ranges=8, gains=True), version=2)
 
 
-@settings(max_examples=150, deadline=None)
+@pytest.mark.fuzz
+@fuzz(150)
 @given(
     edits=st.lists(
         st.tuples(st.integers(0, len(_VALID_PING) - 1), st.integers(0, 255)), max_size=8
