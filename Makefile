@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest accuracy fuzz clean
+.PHONY: demo test lint typecheck pytest accuracy fuzz overload clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -47,5 +47,10 @@ FUZZ_EXAMPLES ?= 100000
 fuzz: $(STAMP)
 	SEAMAP_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/pytest -q -m fuzz -n $(TEST_JOBS) -p no:cacheprovider
 
+# The daemon under overload: 40 Hz pings, its core shared with a CPU hog (a minute; the
+# figures go in the notes, not a test).
+overload: $(STAMP)
+	$(BIN)/python -m tools.overload --out overload-out
+
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT)
+	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out
