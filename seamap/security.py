@@ -17,8 +17,9 @@ With the set, a peer must show a certificate of the set's CA *and* a shore's pas
 join the boat, and then may only follow it (subscribe, get tiles, pose and status) and
 ask for a survey to start or stop; whatever it puts or deletes never passes the boat. A
 peer without the set is refused at the TLS handshake. The paths inside the files are
-where the folders are written, or under ``--install-dir`` (for example ``/etc/seamap``:
-copy ``boat/`` there on the boat and ``shore-N/`` there on shore N).
+where the folders are written, or under ``--install-dir`` (for example
+``/etc/seamap/security``: copy ``boat/`` there on the boat and ``shore-N/`` there on
+shore N).
 """
 
 from __future__ import annotations
@@ -325,7 +326,7 @@ def _write_set(
     _write(out / "ca.key", _pem_key(ca_key), 0o600)
 
     def where(folder: Path) -> Path:
-        return folder.resolve() if install_dir is None else Path(install_dir)
+        return folder.resolve() if install_dir is None else Path(install_dir) / folder.name
 
     boat = out / "boat"
     boat.mkdir(exist_ok=True)

@@ -38,8 +38,8 @@ def register(subparsers: Any) -> None:
     init.add_argument("--port", type=int, default=7447, help="the boat's TLS port (7447)")
     init.add_argument(
         "--install-dir", type=Path, default=None, metavar="DIR",
-        help="where each side's folder will be installed (e.g. /etc/seamap): the paths "
-        "inside the files (default: where they are written)",
+        help="where each side's folder (boat/, shore-N/) will be installed, e.g. "
+        "/etc/seamap/security: the paths inside the files (default: where they are written)",
     )  # fmt: skip
     init.set_defaults(handler=run_init)
 
