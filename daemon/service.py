@@ -426,6 +426,8 @@ class Daemon:
             self._save_state(survey_dir, state)
             self._pass_progress.pop(state.id, None)
             return
+        # The live map's idle tiles are no use once the survey ended: their room first.
+        shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
         room, free = self._room_for_pass()
         if not room:
             self._defer_pass(
@@ -485,8 +487,7 @@ class Daemon:
         finally:
             keepalive.cancel()
             self._pass_progress.pop(state.id, None)
-        if state.state != "finishing":
-            shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
+        shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
         self._save_state(survey_dir, state)
 
     def _replay(self, survey_dir: Path, survey_id: str) -> dict[str, Any]:
