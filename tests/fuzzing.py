@@ -14,10 +14,9 @@ FUZZ_ENV = "SEAMAP_FUZZ_EXAMPLES"
 def fuzz(default: int = 150) -> settings:
     """Hypothesis settings for a fuzz test (mark it ``@pytest.mark.fuzz`` too)."""
     examples = int(os.environ.get(FUZZ_ENV, default))
-    deep = examples > default
-    return settings(
-        max_examples=examples,
-        deadline=None,
-        database=None if deep else settings.default.database,
-        suppress_health_check=list(HealthCheck),
-    )
+    if examples > default:  # at depth: no example database to grow on disk
+        return settings(
+            max_examples=examples, deadline=None, database=None,
+            suppress_health_check=list(HealthCheck),
+        )  # fmt: skip
+    return settings(max_examples=examples, deadline=None, suppress_health_check=list(HealthCheck))

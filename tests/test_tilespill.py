@@ -59,3 +59,9 @@ def test_a_damaged_tile_file_is_named_in_one_line(tmp_path: Path) -> None:
     path.write_bytes(b"PK\x03\x04 an old npz")
     with pytest.raises(SpillError, match="not a seamap tile"):
         spill.load((1, 2))
+
+
+def test_large_blocks_are_given_back_to_the_system() -> None:
+    from seamap.memory import return_large_blocks
+
+    assert return_large_blocks()  # glibc takes the setting (CI and the boats run glibc)
