@@ -13,6 +13,7 @@ waited to render, plus the time it took to process).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
 import queue
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.oculus.logfile import iter_pings
 from mapping import kernels
 from mapping.samples import Ping
 from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
@@ -39,24 +41,28 @@ _AHEAD = 16
 
 
 def _simulate_into(
-    out: Any, scenario: str, seed: int, overrides: dict[str, Any], pings_only: bool
+    out: Any, scenario: str, seed: int, overrides: dict[str, Any], record: Path | None
 ) -> None:
     """The simulator's process: the stream's set-up, then its events in batches, then
-    None (or one line, if the simulator fails)."""
+    "end" (or one line, if the simulator fails); ``record``: the pings also written there
+    as an Oculus log, as the daemon records them (closed before "end")."""
+    from drivers.oculus.logfile import OculusLogWriter
     from tools.sim.stream import survey_events
 
     try:
-        stream = survey_events(scenario, seed, **overrides)
-        out.put(("setup", stream.site_config, stream.ping_count))
-        batch: list[Any] = []
-        for event in stream.events:
-            if pings_only and not isinstance(event[1], Ping):
-                continue
-            batch.append(event)
-            if len(batch) == _BATCH:
-                out.put(("events", batch))
-                batch = []
-        out.put(("events", batch))
+        with contextlib.ExitStack() as stack:
+            log = None if record is None else stack.enter_context(OculusLogWriter(record))
+            stream = survey_events(
+                scenario, seed, on_ping_message=None if log is None else log.write, **overrides
+            )
+            out.put(("setup", stream.site_config, stream.ping_count))
+            batch: list[Any] = []
+            for event in stream.events:
+                batch.append(event)
+                if len(batch) == _BATCH:
+                    out.put(("events", batch))
+                    batch = []
+            out.put(("events", batch))
         out.put(("end",))
     except SeamapError as error:
         out.put(("error", str(error)))
@@ -69,13 +75,13 @@ class SimulatedFeed:
     world and its set-up's peak stay out of the engine's memory)."""
 
     def __init__(
-        self, scenario: str, seed: int, overrides: dict[str, Any], pings_only: bool = False
+        self, scenario: str, seed: int, overrides: dict[str, Any], record: Path | None = None
     ) -> None:
         context = multiprocessing.get_context("spawn")
         self._queue: Any = context.Queue(maxsize=_AHEAD)
         self._process = context.Process(
             target=_simulate_into,
-            args=(self._queue, scenario, seed, overrides, pings_only),
+            args=(self._queue, scenario, seed, overrides, record),
             name="seamap-bench-simulator",
             daemon=True,
         )
@@ -229,7 +235,11 @@ def run_bench(
 
     if max_pings is not None:
         overrides = {**overrides, "max_pings": max_pings}
-    stream = SimulatedFeed(scenario, seed, overrides)
+    # Tiles the boat leaves go to disk, as on the boat; with the survey-end pass, the pings
+    # are recorded there too, and the pass reads the recording, as the daemon's does.
+    spill_dir = tempfile.TemporaryDirectory(prefix="seamap-bench-")
+    recording = Path(spill_dir.name) / "sonar.oculus" if final_pass else None
+    stream = SimulatedFeed(scenario, seed, overrides, recording)
     config = stream.site_config
     params = params or StreamingParams(
         pipeline=pipeline_params(config), tile_memory_mb=config.daemon.tile_memory_mb
@@ -251,9 +261,7 @@ def run_bench(
 
     processing: list[float] = []
     seen: set[int] = set()
-    # Tiles the boat leaves go to disk, as on the boat.
-    spill_dir = tempfile.TemporaryDirectory(prefix="seamap-bench-")
-    spill = DiskSpill(Path(spill_dir.name))
+    spill = DiskSpill(Path(spill_dir.name) / "live")
     engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile, spill=spill)
     return_large_blocks()  # as the daemon does at start
     kernels.warm()  # as the daemon does at start: the compile is not a frame's time
@@ -295,12 +303,8 @@ def run_bench(
     if final_pass:
 
         def pings_again() -> Iterator[Ping]:
-            again = SimulatedFeed(scenario, seed, overrides, pings_only=True)
-            try:
-                for _, sample in again.events():
-                    yield sample
-            finally:
-                again.close()
+            assert recording is not None
+            return iter_pings(recording)
 
         started = time.perf_counter()
         final_spill = DiskSpill(Path(spill_dir.name) / "final")

@@ -27,7 +27,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--beams", type=int, default=None, help="beams per ping")
     parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
     parser.add_argument(
-        "--final", action="store_true", help="also time the survey-end pass (renders twice)"
+        "--final",
+        action="store_true",
+        help="also time the survey-end pass (the pings are recorded as the daemon records "
+        "them, and the pass reads the recording)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(

@@ -185,9 +185,14 @@ def _nav_events(tables: list[tuple[MessageTable, list[_Converter]]]) -> Iterator
                     yield time, sample
 
 
-def _ping_events(source: PingSource) -> Iterator[tuple[float, Ping]]:
-    """Each ping rendered, encoded and decoded as iter_pings reads it from the log."""
+def _ping_events(
+    source: PingSource, on_message: Callable[[bytes, float], None] | None = None
+) -> Iterator[tuple[float, Ping]]:
+    """Each ping rendered, encoded and decoded as iter_pings reads it from the log (the
+    encoded message and its receive time to ``on_message`` first, e.g. to record it)."""
     for message, receive in zip(source, source.plan.receive.tolist(), strict=True):
+        if on_message is not None:
+            on_message(message, receive)
         yield receive, parse_simple_ping(message, receive)
 
 
@@ -235,11 +240,17 @@ def _release_memory() -> None:
         pass
 
 
-def survey_events(scenario: str, seed: int, **overrides: Any) -> SimStream:
+def survey_events(
+    scenario: str,
+    seed: int,
+    on_ping_message: Callable[[bytes, float], None] | None = None,
+    **overrides: Any,
+) -> SimStream:
     """Stream survey ``scenario`` with ``seed``; ``overrides`` as for ``simulate`` (e.g.
     ``max_pings``, ``duration_s``, ``n_beams``, ``flavour``). The events equal what the
     drivers read from the files ``simulate`` writes for the same arguments; SeamapError
-    for a bad name, key or value."""
+    for a bad name, key or value. ``on_ping_message`` sees each ping's Oculus message and
+    receive time as it is rendered (a recorder, as on the boat)."""
     s = resolve_scenario(scenario, **overrides)
     setup = prepare_survey(s, seed)
     s = setup.scenario  # the field day's
@@ -249,7 +260,7 @@ def survey_events(scenario: str, seed: int, **overrides: Any) -> SimStream:
     # messages need.
     tables, sources = _nav_tables(setup.tlog_plan(setup.nav_streams()), autopilot)
     site, start, end = setup.site, setup.start, setup.end
-    events = _merge(_nav_events(tables), _ping_events(source), source.plan.receive)
+    events = _merge(_nav_events(tables), _ping_events(source, on_ping_message), source.plan.receive)
     del setup
     _release_memory()
     return SimStream(
