@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import math
 import multiprocessing
+import os
 import queue
 import tempfile
 import time
@@ -40,6 +41,21 @@ _AHEAD = 16
 """Messages the simulator may run ahead of the engine (about 1,000 events)."""
 
 
+def _put(out: Any, message: tuple[Any, ...]) -> None:
+    """Hand a message to the engine's process; leave if that process has gone (killed)."""
+    parent = multiprocessing.parent_process()
+    while True:
+        try:
+            out.put(message, timeout=1.0)
+            return
+        except queue.Full:
+            if parent is not None and not parent.is_alive():
+                # Nobody reads the pipe any more: leave now (a normal exit would wait for
+                # the queue's feeder thread, blocked on the full pipe, for ever).
+                out.cancel_join_thread()
+                os._exit(0)
+
+
 def _simulate_into(
     out: Any, scenario: str, seed: int, overrides: dict[str, Any], record: Path | None
 ) -> None:
@@ -55,19 +71,19 @@ def _simulate_into(
             stream = survey_events(
                 scenario, seed, on_ping_message=None if log is None else log.write, **overrides
             )
-            out.put(("setup", stream.site_config, stream.ping_count))
+            _put(out, ("setup", stream.site_config, stream.ping_count))
             batch: list[Any] = []
             for event in stream.events:
                 batch.append(event)
                 if len(batch) == _BATCH:
-                    out.put(("events", batch))
+                    _put(out, ("events", batch))
                     batch = []
-            out.put(("events", batch))
-        out.put(("end",))
+            _put(out, ("events", batch))
+        _put(out, ("end",))
     except SeamapError as error:
-        out.put(("error", str(error)))
+        _put(out, ("error", str(error)))
     except Exception as error:  # one line to the parent, not a traceback
-        out.put(("error", f"the simulator failed: {type(error).__name__}: {error}"))
+        _put(out, ("error", f"the simulator failed: {type(error).__name__}: {error}"))
 
 
 class SimulatedFeed:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -174,3 +175,43 @@ def test_every_command_reading_the_site_file_refuses_a_bad_value(
     result = seamap(*[part.format(dir=tmp_path, site=site) for part in command])
     assert_one_line_error(result, "[mapping] mosaic_res_m = -0.02 is outside")
     assert not (tmp_path / "out").exists() and not (tmp_path / "shore").exists()
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def test_the_bench_simulator_leaves_when_the_bench_is_killed() -> None:
+    bench = subprocess.Popen(
+        [sys.executable, "-m", "seamap", "bench", "--pings", "5000", "--beams", "64"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not (children := _children(bench.pid)):
+            assert time.monotonic() < deadline and bench.poll() is None, "no simulator process"
+            time.sleep(0.2)
+        time.sleep(5.0)  # the simulator runs ahead until its queue is full
+    finally:
+        bench.kill()
+        bench.wait(30)
+    deadline = time.monotonic() + 30
+    while any(Path(f"/proc/{c}").exists() and "Z" not in _state(c) for c in children):
+        assert time.monotonic() < deadline, "the simulator outlived the bench"
+        time.sleep(0.2)
+
+
+def _state(pid: int) -> str:
+    try:
+        return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split() or ["?"])[0]
+    except OSError:
+        return "Z"
