@@ -10,8 +10,9 @@ empty slots or speckle: on tiles of a simulated survey (5.3 MB each) Zstandard p
 them as small as deflate at its fastest level (2.27 MB against 2.33 for a full tile) in
 a sixth of the time (8.7 ms against 55; reading 3.5 ms against 13.5), and spilling runs
 on the mapping thread. Storing them raw wrote 167 GB over the two-hour hectare; in
-Zstandard it wrote 96 GB, since that is about 42,000 spills (the live re-solve's redraws
-load old tiles that leave again 30 s later): their number is what must come down next.
+Zstandard 96 GB, since that was about 42,000 spills (the live re-solve's redraws loaded old
+tiles that left again 30 s later); with idle tiles kept within a memory budget
+(``mapping.tiles``, 256 MiB), 4.4 GB.
 """
 
 from __future__ import annotations
