@@ -114,9 +114,9 @@ class Tile:
     def empty(cls, key: TileKey, size: int, n: int) -> Tile:
         return cls(
             key,
-            memory.mapped((size, size, n), np.uint8),  # type: ignore[arg-type]
-            memory.mapped((size, size, n), np.uint16),  # type: ignore[arg-type]
-            memory.mapped((size, size, n), np.uint16, NO_FRAME),  # type: ignore[arg-type]
+            np.zeros((size, size, n), np.uint8),
+            np.zeros((size, size, n), np.uint16),
+            np.full((size, size, n), NO_FRAME, np.uint16),
         )
 
     @property
@@ -237,6 +237,7 @@ class TileStore:
             return out
         idle.sort(key=lambda t: t.last_use)
         held = self.nbytes
+        spilled = False
         for tile in idle:
             if self.memory_bytes is not None and held <= self.memory_bytes:
                 break
@@ -267,6 +268,9 @@ class TileStore:
             self.spill_error = None
             del self.active[key]
             self.spilled += 1
+            spilled = True
+        if spilled:
+            memory.trim()  # the stacks' pages back to the system (``mapping.memory``)
         return out
 
     @property

@@ -29,7 +29,6 @@ import numpy as np
 import numpy.typing as npt
 import zstandard
 
-from mapping import memory
 from mapping.mosaic import TileKey
 
 _NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.zst$")
@@ -96,11 +95,8 @@ class DiskSpill:
             (length,) = struct.unpack_from("<I", data, len(_MAGIC))
             layout = json.loads(data[start : start + length])
             sizes = [int(np.dtype(dtype).itemsize * np.prod(shape)) for _, dtype, shape in layout]
-            # Writable, and a mapping of its own (``mapping.memory``): the tile's stacks are
-            # updated in place once loaded, and unmapped when the tile leaves again.
-            raw = self._decompressor.decompress(data[start + length :])
-            payload = memory.mapped((len(raw),), np.uint8)
-            payload[:] = np.frombuffer(raw, np.uint8)
+            # Writable (a bytearray): the tile's stacks are updated in place once loaded.
+            payload = bytearray(self._decompressor.decompress(data[start + length :]))
             if len(payload) != sum(sizes):
                 raise SpillError(f"{len(payload)} bytes where its arrays need {sum(sizes)}")
         except (SpillError, ValueError, TypeError, struct.error, zstandard.ZstdError) as exc:

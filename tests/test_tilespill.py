@@ -61,16 +61,8 @@ def test_a_damaged_tile_file_is_named_in_one_line(tmp_path: Path) -> None:
         spill.load((1, 2))
 
 
-def test_tile_stacks_live_in_mappings_of_their_own() -> None:
-    import mmap
-
+def test_freed_memory_can_be_given_back_to_the_system() -> None:
     from mapping import memory
 
-    stack = memory.mapped((4, 4, 16), np.uint16, 65535)
-    base: object = stack
-    while isinstance(base, np.ndarray | memoryview):
-        base = base.base if isinstance(base, np.ndarray) else base.obj
-    assert isinstance(base, mmap.mmap)
-    assert stack.flags.writeable and (stack == 65535).all()
-    stack[0, 0, 0] = 7
-    assert memory.mapped((3,), np.uint8).tolist() == [0, 0, 0]
+    assert memory.available()  # glibc's malloc_trim (CI and the boats run glibc)
+    memory.trim()
