@@ -63,6 +63,7 @@ from mapping.samples import GnssFix, NavSample, Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
 from seamap.config import SiteConfig
 from seamap.errors import SeamapError
+from seamap.memory import return_large_blocks
 from seamap.replay import mount_from_config, pipeline_params
 from seamap.results import write_trajectory
 from seamap.security import insecure_listen
@@ -116,6 +117,7 @@ class Daemon:
                 "or set [zenoh] allow_insecure = true"
             )
         self._prepare_state_dir()
+        return_large_blocks()  # tiles' stacks go back to the system when freed
         kernels.warm()  # the tiles' compiled loops, before the first ping needs them
         loop = asyncio.get_running_loop()
         self.publisher = ZenohPublisher(

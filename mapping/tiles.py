@@ -32,7 +32,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from mapping import kernels, memory
+from mapping import kernels
 from mapping.blend import BlendParams
 from mapping.fmt import SonarGrid
 from mapping.mosaic import (
@@ -237,7 +237,6 @@ class TileStore:
             return out
         idle.sort(key=lambda t: t.last_use)
         held = self.nbytes
-        spilled = False
         for tile in idle:
             if self.memory_bytes is not None and held <= self.memory_bytes:
                 break
@@ -268,9 +267,6 @@ class TileStore:
             self.spill_error = None
             del self.active[key]
             self.spilled += 1
-            spilled = True
-        if spilled:
-            memory.trim()  # the stacks' pages back to the system (``mapping.memory``)
         return out
 
     @property

@@ -32,6 +32,7 @@ from mapping import kernels
 from mapping.samples import Ping
 from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
 from seamap.errors import SeamapError
+from seamap.memory import return_large_blocks
 from seamap.tilespill import DiskSpill
 
 _BATCH = 64
@@ -278,6 +279,7 @@ def run_bench(
     seen: set[int] = set()
     spill = DiskSpill(Path(spill_dir.name) / "live")
     engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile, spill=spill)
+    return_large_blocks()  # as the daemon does at start
     kernels.warm()  # as the daemon does at start: the compile is not a frame's time
     reset_peak_rss()
     rss_start, _ = rss_mb()

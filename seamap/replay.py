@@ -30,6 +30,7 @@ from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamSt
 from mapping.tiles import TileSpill
 from seamap.config import MappingConfig, SiteConfig, SonarConfig, load_config
 from seamap.errors import SeamapError
+from seamap.memory import return_large_blocks
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
 from seamap.tilespill import DiskSpill
 
@@ -214,6 +215,7 @@ def replay(
     in one SeamapError naming the files.
     """
     started = time.perf_counter()
+    return_large_blocks()  # the tiles' stacks go back to the system when freed
     sonar_paths = _log_paths(sonar, "sonar log")
     nav_paths = _log_paths(nav, "navigation log")
     sonar_names, nav_names = _names(sonar_paths), _names(nav_paths)
