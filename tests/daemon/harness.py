@@ -105,6 +105,15 @@ class DaemonProcess:
         self.proc.send_signal(sig)
         return await asyncio.wait_for(self.proc.wait(), timeout_s)
 
+    async def ensure_stopped(self) -> None:
+        """Kill the daemon if it still runs (a test that failed half way leaves none)."""
+        if self._poller is not None:
+            self._poller.cancel()
+            await asyncio.gather(self._poller, return_exceptions=True)
+        if self.proc is not None and self.proc.returncode is None:
+            self.proc.kill()
+            await asyncio.wait_for(self.proc.wait(), 30)
+
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")
 

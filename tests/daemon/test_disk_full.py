@@ -138,7 +138,16 @@ def _daemon_on_a_full_disk(tmp_path: Path, state_dir: Path) -> None:
     earlier = state_dir / "surveys" / "20260101-000000"
 
     async def main() -> int:
+        daemons: list[DaemonProcess] = []
+        try:
+            return await steps(daemons)
+        finally:
+            for daemon in daemons:
+                await daemon.ensure_stopped()
+
+    async def steps(daemons: list[DaemonProcess]) -> int:
         daemon = DaemonProcess(config, state_dir, log_path)
+        daemons.append(daemon)
         await daemon.start()
         await asyncio.to_thread(wait_for, lambda: (state_dir / "control.sock").exists(), 30)
         started = await asyncio.to_thread(ctl, config, "start")
@@ -158,6 +167,7 @@ def _daemon_on_a_full_disk(tmp_path: Path, state_dir: Path) -> None:
         assert (survey / "sonar-001.oculus").is_file() and (survey / "nav-001.tlog").is_file()
         # Started again on the full disk: both passes wait; space returns, they run.
         daemon = DaemonProcess(config, state_dir, log_path)
+        daemons.append(daemon)
         await daemon.start()
         await asyncio.to_thread(
             wait_for, lambda: daemon.log().count("survey-end pass deferred") >= 3, 60

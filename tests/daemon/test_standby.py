@@ -49,32 +49,35 @@ def test_the_sonar_stands_by_outside_surveys(tmp_path: Path) -> None:
             config.write_text(dump_config(config_from_dict(data)))
             daemon = DaemonProcess(config, tmp_path / "state", tmp_path / "daemon.log")
             await daemon.start()
+            try:
 
-            def fired(pinging: bool) -> bool:
-                return sonar.last_fire is not None and sonar.pinging == pinging
+                def fired(pinging: bool) -> bool:
+                    return sonar.last_fire is not None and sonar.pinging == pinging
 
-            # No survey: the link fires standby, and the sonar counts as up by its status.
-            await until(lambda: fired(False), 30)
-            status = await daemon.wait_status(
-                lambda s: s["links"]["sonar"].get("standby") and s["links"]["sonar"]["up"], 30
-            )
-            sent = sonar.pings_sent
-            await asyncio.sleep(1.5)
-            assert sonar.pings_sent == sent, "no pings while standing by"
-            started = await asyncio.to_thread(ctl, config, "start")
-            assert started.returncode == 0, started.stderr
-            await until(lambda: fired(True), 5)
-            await daemon.wait_status(
-                lambda s: s["links"]["sonar"]["up"] and not s["links"]["sonar"]["standby"], 10
-            )
-            folder = tmp_path / "state" / "surveys" / started.stdout.strip()
-            await until(lambda: sonar.pings_sent > sent + 10, 10)
-            stopped = await asyncio.to_thread(ctl, config, "stop")
-            assert stopped.returncode == 0, stopped.stderr
-            await until(lambda: fired(False), 5)
-            assert json.loads((folder / "survey.json").read_text())["state"] != "recording"
-            assert status["links"]["sonar"]["last_status_age_s"] < 3.5
-            code = await daemon.stop(signal.SIGTERM, 60)
+                # No survey: the link fires standby, and the sonar counts as up by its status.
+                await until(lambda: fired(False), 30)
+                status = await daemon.wait_status(
+                    lambda s: s["links"]["sonar"].get("standby") and s["links"]["sonar"]["up"], 30
+                )
+                sent = sonar.pings_sent
+                await asyncio.sleep(1.5)
+                assert sonar.pings_sent == sent, "no pings while standing by"
+                started = await asyncio.to_thread(ctl, config, "start")
+                assert started.returncode == 0, started.stderr
+                await until(lambda: fired(True), 5)
+                await daemon.wait_status(
+                    lambda s: s["links"]["sonar"]["up"] and not s["links"]["sonar"]["standby"], 10
+                )
+                folder = tmp_path / "state" / "surveys" / started.stdout.strip()
+                await until(lambda: sonar.pings_sent > sent + 10, 10)
+                stopped = await asyncio.to_thread(ctl, config, "stop")
+                assert stopped.returncode == 0, stopped.stderr
+                await until(lambda: fired(False), 5)
+                assert json.loads((folder / "survey.json").read_text())["state"] != "recording"
+                assert status["links"]["sonar"]["last_status_age_s"] < 3.5
+                code = await daemon.stop(signal.SIGTERM, 60)
+            finally:
+                await daemon.ensure_stopped()
             return code, daemon.log()
 
     code, log = asyncio.run(asyncio.wait_for(main(), 120))
