@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest accuracy fuzz overload clean
+.PHONY: demo test lint typecheck pytest accuracy fuzz overload navloss clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -52,5 +52,12 @@ fuzz: $(STAMP)
 overload: $(STAMP)
 	$(BIN)/python -m tools.overload --out overload-out
 
+# The autopilot link silent for 30 s (and 120 s) mid-survey: the live map and the survey-end
+# pass against the truth, 7 surveys by 3 places (about 20 minutes on 2 cores).
+navloss: $(STAMP)
+	$(BIN)/python -m tools.navloss --out navloss-out --jobs $(JOBS) --where turn mid start
+	$(BIN)/python -m tools.navloss --out navloss-out/120s --jobs $(JOBS) --where turn mid --gap 120 \
+		--surveys quadrats-s5-2hz quadrats-s1
+
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out
+	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out

@@ -148,6 +148,10 @@ class NavFilter:
         self._last_imu: ImuInput | None = None
         self.transition: Array = np.eye(STATE_SIZE)
         self.imu_gaps = 0
+        self.gyro_epoch = 0
+        """Number of IMU gaps longer than ``max_imu_gap_s`` that have closed: two frames
+        whose stamps share an epoch, each with a fresh IMU sample, have the gyro's turn
+        between them in ``odometry`` (``gyro_epoch_at``)."""
         self.odometry: Array = np.zeros(3)
         """Sum of the predicted motion only (east, north metres; heading radians): the
         dead-reckoned path, free of the jumps that measurement updates make. Differences
@@ -237,7 +241,19 @@ class NavFilter:
         """Integrate up to this sample's time with the previous sample, then hold this one."""
         if self.initialised:
             self.predict_to(imu.time)
+        last = self._last_imu
+        if last is not None and imu.time - last.time > self.params.max_imu_gap_s:
+            self.gyro_epoch += 1
         self._last_imu = imu
+
+    def gyro_epoch_at(self, time: float) -> int | None:
+        """The gyro epoch at ``time`` (reached by the filter), None when the IMU has been
+        silent for longer than ``max_imu_gap_s`` there: the filter then dead-reckons at a
+        constant heading, and its odometry knows nothing of a turn."""
+        last = self._last_imu
+        if last is None or time - last.time > self.params.max_imu_gap_s:
+            return None
+        return self.gyro_epoch
 
     # -- updates ---------------------------------------------------------------------
     def update_position(self, time: float, x: float, y: float, sigma_m: float) -> None:

@@ -300,6 +300,13 @@ class LiveResolver:
     def due(self, now: float) -> bool:
         return self.params.enabled and len(self.drawn) >= 2 and now >= self.next_solve_time
 
+    def gnss_silent(self, now: float) -> bool:
+        """No fix for ``every_s`` before ``now`` (the autopilot link cut, the receiver
+        lost): a re-solve could only re-fit the stretch to the fixes behind it and move
+        the chain's present, which nothing absolute has measured since, by what the
+        GNSS bias model then guesses; the chain carries on as it is until fixes return."""
+        return not self._gnss_t or now - self._gnss_t[-1] > self.params.every_s
+
     def solved(self, now: float) -> None:
         """A re-solve ran (or had nothing to solve) at ``now``: the next comes ``every_s``
         later."""

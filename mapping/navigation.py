@@ -287,6 +287,23 @@ def _rts(
     return xs, ps
 
 
+def gyro_epochs(inputs: NavInputs, times: Array, max_gap_s: float) -> npt.NDArray[np.int64]:
+    """Per frame time, the gyro epoch as ``NavFilter.gyro_epoch_at`` gives it live: the
+    number of IMU gaps longer than ``max_gap_s`` closed by then, -1 where the last IMU
+    sample is older than ``max_gap_s`` (or there is none)."""
+    times = np.asarray(times, float)
+    imu_t = np.array([s.time for s in inputs.imu], float)
+    out = np.full(times.size, -1, np.int64)
+    if imu_t.size == 0 or times.size == 0:
+        return out
+    closes = imu_t[1:][np.diff(imu_t) > max_gap_s]  # where each gap ended
+    last = np.searchsorted(imu_t, times, side="right") - 1
+    fresh = (last >= 0) & (times - imu_t[np.maximum(last, 0)] <= max_gap_s)
+    epoch = np.searchsorted(closes, times, side="right")
+    out[fresh] = epoch[fresh]
+    return out
+
+
 class AttitudeTrack:
     """Roll and pitch at any time, interpolated from the autopilot's attitude reports.
 

@@ -41,7 +41,7 @@ from mapping.loops import (
     LoopReport,
 )
 from mapping.mosaic import SonarPose, TileGrid
-from mapping.navigation import AttitudeTrack, estimate_at, prepare_inputs
+from mapping.navigation import AttitudeTrack, estimate_at, gyro_epochs, prepare_inputs
 from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
 from mapping.preprocess import PreprocessParams
@@ -248,6 +248,7 @@ def map_survey(
     n = times.size
     estimate = estimate_at(inputs, times, params.ekf, smooth=params.smooth_nav)
     priors = estimate.poses
+    gyro = gyro_epochs(inputs, times, params.ekf.max_imu_gap_s)
     started = clock.add("ekf", started)
 
     outcomes: list[FrameOutcome] = list(registrations) if registrations is not None else []
@@ -268,7 +269,10 @@ def map_survey(
         else:
             sonar_frame = registration.frame(ping)
             t1 = clock.add("preprocess", t1)
-            outcomes.append(registration.register(index, ping.time, sonar_frame, prior))
+            epoch = int(gyro[index]) if gyro[index] >= 0 else None
+            outcomes.append(
+                registration.register(index, ping.time, sonar_frame, prior, gyro_epoch=epoch)
+            )
         clock.add("registration", t1)
         if progress is not None:
             progress("registering", index + 1, n)
@@ -312,6 +316,7 @@ def map_survey(
             closure_source if uses_closures and n > 0 else None,
             loop_report,
             rigid_s=params.subset_s if mode is Mode.TWO_STAGE else None,
+            gyro=gyro,
         )
         poses, closures = placed.poses, placed.closures
         fusion_summary = {**placed.summary, "closures": asdict(placed.closure_report)}

@@ -62,6 +62,19 @@ class SingleStageResult:
     summary: dict[str, Any]
 
 
+def _coast_initial(
+    initial: Array, chain: Sequence[RelativeConstraint], silent: npt.NDArray[np.bool_]
+) -> Array:
+    """Where the gyro was silent (``silent``, per node) the filter held its heading through
+    whatever turn the boat made, and Gauss-Newton started there may not find its way
+    back: those nodes start where the chain puts them instead, from the node before."""
+    out = np.array(initial, float)
+    for c in chain:
+        if silent[c.j]:
+            out[c.j] = compose(out[c.i], RelativePose(c.forward_m, c.starboard_m, c.yaw_rad))
+    return out
+
+
 def _as_edges(
     nodes: npt.NDArray[np.int64], constraints: Sequence[RelativeConstraint]
 ) -> list[Edge]:
@@ -87,6 +100,7 @@ def single_stage(
     | None,
     loop_report: LoopReport,
     rigid_s: float | None = None,
+    gyro: npt.NDArray[np.int64] | None = None,
 ) -> SingleStageResult:
     """Place the accepted frames. ``closure_source(poses)`` gives what loop closures need
     (a fresh pass over the pings, a registration set-up, the lit range band and half the
@@ -96,9 +110,15 @@ def single_stage(
     chained into rigid submaps (stage 1, as fmt-only does), and only the submaps' poses
     are solved (stage 2), against the same measurements. Consecutive submaps are tied by
     the registration between their end frames, which is what the paper's half-overlapping
-    subsets share (both carry the same chained relative poses)."""
+    subsets share (both carry the same chained relative poses).
+
+    gyro: every frame's gyro epoch (``navigation.gyro_epochs``): where the IMU was silent
+    the filter held its heading, and the chain, not the priors, is where the solver
+    starts from."""
     n = times.size
-    nodes, chain = chain_constraints(times, accepted, edges, outcomes, priors, mount, params.graph)
+    nodes, chain = chain_constraints(
+        times, accepted, edges, outcomes, priors, mount, params.graph, gyro
+    )
     out = np.full((n, 3), np.nan)
     report = ClosureReport()
     if nodes.size == 0:
@@ -110,6 +130,8 @@ def single_stage(
         chain = _loosen_links(chain, rigid, _internal_drift(rigid, chain, priors[nodes]))
     fusion = Fusion(node_times, data, params.fusion, rigid)
     initial = priors[nodes] if rigid is None else _anchor_priors(priors[nodes], rigid)
+    if gyro is not None and rigid is None:
+        initial = _coast_initial(initial, chain, gyro[nodes] < 0)
     solution, state = fusion.solve(initial, chain)
     poses_nodes = solution.poses
     kept: list[RelativeConstraint] = []

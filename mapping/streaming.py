@@ -130,6 +130,11 @@ class StreamingParams:
     bridge_filter_sigma_mps: float = 0.3
     """Error of a filter's dead-reckoned bridge per second: 50-80 cm over 2 s measured in
     a GNSS outage (the same survey), where the accelerometers alone carry the velocity."""
+    heading_fresh_s: float = 1.0
+    """The filter's heading is a measurement of the chain's for the anchor while the gyro
+    has carried it without a break since the last compass heading, or this long after
+    one: with the autopilot link silent the filter holds its heading whatever the boat
+    does, and when the link returns the gyro comes back before the compass has spoken."""
     gnss_time_offset_s: float = 0.1
     """A fix shows the antenna this long before the frame stamps say (fix lag minus
     sonar latency)."""
@@ -300,6 +305,9 @@ class StreamingEngine:
         self._chain_heading: dict[int, float] = {}
         self._bends_at: dict[int, Array] = {}  # the anchor's bends when each was chained
         self._odometry: dict[int, Array] = {}
+        self._gyro: dict[int, int | None] = {}  # the filter's gyro epoch at each frame
+        self._last_compass = -math.inf  # stamp of the last compass heading
+        self._compass_epoch: int | None = None  # the gyro epoch at that heading
         self._last_chained: int | None = None
         self._bridged: Bridge | None = None  # how the last frame chained was bridged
         self._registered_velocity: tuple[float, float, float] | None = None  # fwd, stbd, time
@@ -390,6 +398,8 @@ class StreamingEngine:
         elif isinstance(sample, HeadingSample):
             self._headings.append(sample)
             self._pending_heading = sample
+            self._last_compass = sample.time
+            self._compass_epoch = self.nav.gyro_epoch_at(sample.time)
             if self.frame is not None:
                 self.resolver.add_heading(sample.time, self._grid_heading(sample))
             if self.nav.initialised and self.frame is not None:
@@ -468,15 +478,17 @@ class StreamingEngine:
         started = clock.perf_counter()
         prior: Array | None = None
         odometry: Array | None = None
+        gyro: int | None = None
         if self.nav.initialised:
             self.nav.predict_to(ping.time)
             odometry = self.nav.odometry.copy()
+            gyro = self.nav.gyro_epoch_at(ping.time)
             state, _ = self.nav.state()
             prior = state[[0, 1, PSI]]
         started = stats.time("ekf", started)
         sonar_frame = self.local.frame(ping)
         started = stats.time("preprocess", started)
-        outcome = self.local.register(index, ping.time, sonar_frame, prior, odometry)
+        outcome = self.local.register(index, ping.time, sonar_frame, prior, odometry, gyro)
         started = stats.time("registration", started)
         self.times.append(ping.time)
         if self.params.reuse_registrations:
@@ -501,7 +513,7 @@ class StreamingEngine:
         outcome.registration = None  # the edges are what is kept of it
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
-        self._chain_frame(index, ping.time, prior, odometry, outcome.edge)
+        self._chain_frame(index, ping.time, prior, odometry, outcome.edge, gyro)
         self.resolver.add_frame(
             index, ping.time, prior, outcome.edge, sqrt_info, self._bridged,
             outcome.measured, measured_info,
@@ -561,10 +573,15 @@ class StreamingEngine:
         prior: Array,
         odometry: Array | None,
         edge: Edge | None,
+        gyro: int | None = None,
     ) -> None:
         """Chain an accepted frame onto the previous one: by its registration, else by the
         filter's dead-reckoned motion (a rejection or a restart never jumps to the
-        prior); then give the anchor the fixes and the heading residual up to here."""
+        prior); then give the anchor the fixes and the heading residual up to here.
+
+        gyro: the filter's gyro epoch here. Where it is not the previous frame's, the
+        filter held its heading (the autopilot link silent): the turn is the chain's, and
+        the filter's heading is no measurement for the anchor until the compass speaks."""
         last = self._last_chained
         self._bridged = None
         if last is None:
@@ -575,6 +592,7 @@ class StreamingEngine:
             heading = self._chain_heading[last] + self.anchor.heading
             reckoned = self._dead_reckoned(last, odometry)
             span = time - self.times[last]
+            covered = gyro is not None and self._gyro.get(last) == gyro
             bridge_sigma = 0.0
             scaled = True
             if edge is not None and edge.i == last:
@@ -585,18 +603,25 @@ class StreamingEngine:
                 forward, starboard, dyaw = reckoned or (0.0, 0.0, 0.0)
                 bridge_sigma = self.params.bridge_filter_sigma_mps * span
                 scaled = False
-            if reckoned is not None:
+            velocity = self._registered_velocity
+            age = time - velocity[2] if velocity is not None else math.inf
+            recent = age <= self.params.bridge_velocity_age_s
+            bridged = edge is None or edge.i != last
+            if reckoned is not None and covered:
                 # The heading follows the gyro (through the filter): over a ping it is good
                 # to a hundredth of a degree, where a registration's yaw is good to a few
                 # hundredths and its errors add up along the chain.
                 dyaw = reckoned[2]
-            velocity = self._registered_velocity
-            bridged = edge is None or edge.i != last
-            if (
-                bridged
-                and velocity is not None
-                and time - velocity[2] <= self.params.bridge_velocity_age_s
-            ):
+            elif bridged:
+                # No gyro and no registration: the chain's turn rate, held.
+                rate = self.local.chain_rate(time, self.params.bridge_velocity_age_s)
+                dyaw = rate[2] * span if rate is not None else 0.0
+            if bridged and not covered:
+                # The filter held its heading and velocity (no IMU): the chain's own, held.
+                rate = self.local.chain_rate(time, self.params.bridge_velocity_age_s)
+                if rate is not None:
+                    velocity, recent = (rate[0], rate[1], time), True
+            if bridged and velocity is not None and recent:
                 # Bridge at the speed the registrations last measured, turned by half the
                 # gyro's turn (the chord of the arc): the boat's speed through a rejection
                 # changes by centimetres a second, the filter's velocity (a GNSS outage:
@@ -619,10 +644,13 @@ class StreamingEngine:
                 # takes it (a live filter in a GNSS outage drifts by decimetres a
                 # second: its poses are no odometry to bridge with).
                 graph = self.params.pipeline.single_stage.graph
+                rate_sigma = (
+                    graph.odometry_rate_sigma_rps if covered else graph.coast_rate_sigma_rps
+                )
                 self._bridged = Bridge(
                     last, forward, starboard, dyaw,
                     graph.odometry_sigma_m + bridge_sigma,
-                    graph.odometry_sigma_rad + graph.odometry_rate_sigma_rps * span,
+                    graph.odometry_sigma_rad + rate_sigma * span,
                 )  # fmt: skip
             self.anchor.chain_step((float(step[0]), float(step[1])), bridge_sigma, scaled)
             # Fixes whose (lagged) time lies up to this frame: residual against the chain.
@@ -637,13 +665,17 @@ class StreamingEngine:
                 self.anchor.update_position(t_fix, (x - float(at[0]), y - float(at[1])))
             # The filter's heading carries the compass's error; the last re-solve
             # estimated it (misalignment and deviation).
-            heading = float(prior[2]) - self.resolver.compass_error(float(prior[2]))
-            heading += self.drawn_frame.turn
-            self.anchor.update_heading(
-                time, math.remainder(heading - self._chain_heading[index], 2 * math.pi)
-            )
+            if time - self._last_compass <= self.params.heading_fresh_s or (
+                gyro is not None and gyro == self._compass_epoch
+            ):
+                heading = float(prior[2]) - self.resolver.compass_error(float(prior[2]))
+                heading += self.drawn_frame.turn
+                self.anchor.update_heading(
+                    time, math.remainder(heading - self._chain_heading[index], 2 * math.pi)
+                )
         if odometry is not None:
             self._odometry[index] = odometry
+        self._gyro[index] = gyro
         self._last_chained = index
 
     def _close_loop(self, index: int, time: float, image: npt.NDArray[np.float32]) -> None:
@@ -760,6 +792,7 @@ class StreamingEngine:
                 self._chain.pop(k, None)
                 self._chain_heading.pop(k, None)
                 self._odometry.pop(k, None)
+                self._gyro.pop(k, None)
                 self._bends_at.pop(k, None)
         self._final_upto = upto
         self.stats.time("blending", started)
@@ -805,6 +838,9 @@ class StreamingEngine:
         moved, and carry the chain on from the new map."""
         started = clock.perf_counter()
         resolver = self.resolver
+        if resolver.gnss_silent(now):
+            resolver.solved(now)
+            return
         old = self.drawn_frame
         back = old.inverse()
         # The solution is in the GNSS's frame: what holds it (the frame before the

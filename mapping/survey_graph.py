@@ -71,6 +71,13 @@ class GraphParams:
     odometry_velocity_sigma_mps: float = 0.05
     odometry_sigma_rad: float = math.radians(0.5)
     odometry_rate_sigma_rps: float = math.radians(0.5)
+    coast_velocity_sigma_mps: float = 0.3
+    """An odometry bridge across frames without the gyro between them (the autopilot link
+    silent) grows by this much a second instead (the filter then holds its heading and
+    velocity, and the boat need not: ``RegistrationParams.coast_speed_sigma_mps``)..."""
+    coast_rate_sigma_rps: float = math.radians(10.0)
+    """... and its heading by this much a second (a lawnmower turn is 12-15 degrees a
+    second: ``RegistrationParams.coast_yaw_rate_sigma_rps``)."""
     registration_scale: float = 1.0
     """Multiplies the registrations' information (1: as their covariance says). The
     paper's lambda sweep (Table IV) maps onto it as lambda / 1e4."""
@@ -148,11 +155,21 @@ def registration_sqrt_info(
 
 
 def odometry_constraint(
-    i: int, j: int, prior_i: Array, prior_j: Array, dt: float, params: GraphParams
+    i: int,
+    j: int,
+    prior_i: Array,
+    prior_j: Array,
+    dt: float,
+    params: GraphParams,
+    coasting: bool = False,
 ) -> RelativeConstraint:
+    """The filter's relative motion from ``prior_i`` to ``prior_j``, as uncertain as the
+    time it spans makes it; ``coasting``: without the gyro between them (``coast_*``)."""
     rel = relative_pose(prior_i, prior_j)
-    sigma_p = params.odometry_sigma_m + params.odometry_velocity_sigma_mps * abs(dt)
-    sigma_a = params.odometry_sigma_rad + params.odometry_rate_sigma_rps * abs(dt)
+    velocity = params.coast_velocity_sigma_mps if coasting else params.odometry_velocity_sigma_mps
+    rate = params.coast_rate_sigma_rps if coasting else params.odometry_rate_sigma_rps
+    sigma_p = params.odometry_sigma_m + velocity * abs(dt)
+    sigma_a = params.odometry_sigma_rad + rate * abs(dt)
     return RelativeConstraint(
         i,
         j,
@@ -172,13 +189,16 @@ def chain_constraints(
     priors: Array,
     mount: SonarMount,
     params: GraphParams,
+    gyro: npt.NDArray[np.int64] | None = None,
 ) -> tuple[npt.NDArray[np.int64], list[RelativeConstraint]]:
     """The nodes (indices of the accepted frames with a prior) and one constraint into
     each node but the first, from an earlier node, in node numbering: the registration
     itself where one was accepted (from the keyframe it was registered against, with
     ``keyframe_edges``; else the edge from the previous node composed through it), an
     odometry bridge from the previous node otherwise. Every node is thus tied to an
-    earlier one: the constraints form a tree that spans the survey."""
+    earlier one: the constraints form a tree that spans the survey. ``gyro``: the gyro
+    epoch of every frame (``navigation.gyro_epochs``), to loosen the bridges the gyro
+    does not span."""
     nodes = np.flatnonzero(accepted & np.all(np.isfinite(priors), axis=1)).astype(np.int64)
     position = {int(k): i for i, k in enumerate(nodes)}
     by_j = {e.j: e for e in edges}
@@ -203,9 +223,16 @@ def chain_constraints(
                 )
             )
         else:
+            coasting = gyro is not None and (gyro[k] < 0 or gyro[k] != gyro[k_prev])
             constraints.append(
                 odometry_constraint(
-                    a - 1, a, priors[k_prev], priors[k], float(times[k] - times[k_prev]), params
+                    a - 1,
+                    a,
+                    priors[k_prev],
+                    priors[k],
+                    float(times[k] - times[k_prev]),
+                    params,
+                    coasting,
                 )
             )
     return nodes, constraints
