@@ -435,10 +435,17 @@ class LocalRegistration:
         fallback = (held, p.coast_speed_sigma_mps * dt, p.coast_yaw_rate_sigma_rps * dt)
         if self._rate is None:
             return fallback
+        # From a keyframe, the way to the last frame is registered already: only the rest
+        # is predicted.
+        start, through = reference, None
+        last = self._last
+        if reference is self._key and last is not None and last is not reference:
+            start, through = last, self._from_key
+        dt = max(here.time - start.time, 0.0)
         (forward_v, starboard_v, yaw_rate), measured_at, span = self._rate
         # Measured over ``span`` up to ``measured_at``: a change of velocity since the
         # middle of that shows over the whole of ``dt``.
-        lever = dt * (max(reference.time - measured_at, 0.0) + 0.5 * (span + dt))
+        lever = dt * (max(start.time - measured_at, 0.0) + 0.5 * (span + dt))
         sigma_p = p.coast_accel_sigma_mps2 * lever
         if sigma_p >= fallback[1]:
             return fallback  # too old to say more than a boat's speed does
@@ -452,4 +459,6 @@ class LocalRegistration:
             (forward_v * s + starboard_v * c) * chord,
             yaw_rate * dt,
         )
+        if through is not None:
+            expected = relative_pose(_ORIGIN, compose(compose(_ORIGIN, through), expected))
         return expected, sigma_p, p.coast_yaw_accel_sigma_rps2 * lever

@@ -57,6 +57,11 @@ class AnchorParams:
     gnss_bias_tau_s: float = 45.0
     heading_drift_density: float = math.radians(0.05)
     """Random walk of the chain's heading error, rad/sqrt(s)."""
+    registered_heading_density: float = math.radians(0.2)
+    """The same while the chain's heading comes from its registrations alone (the gyro
+    silent: the autopilot link cut): 0.12 degrees a keyframe pair (``GraphParams``), one
+    to three pairs a second. The heading rate error (a gyro bias residual) does not act
+    then."""
     rate_sigma_rps: float = math.radians(0.1)
     """Initial sigma of the chain's heading rate error (a gyro bias residual)."""
     rate_walk: float = math.radians(0.002)
@@ -104,8 +109,10 @@ class LiveAnchor:
         correction of its own place on the map, not the bends met since."""
 
     # -- time and the chain ---------------------------------------------------------------
-    def predict(self, time: float) -> None:
-        """Advance the state to ``time`` (s); earlier times leave it where it is."""
+    def predict(self, time: float, gyro: bool = True) -> None:
+        """Advance the state to ``time`` (s); earlier times leave it where it is.
+        ``gyro``: the chain's heading came from the gyro since the state's time (else from
+        the registrations: ``registered_heading_density``, no rate error)."""
         p = self.params
         if self.time is None:
             self.time = time
@@ -116,11 +123,12 @@ class LiveAnchor:
         phi = math.exp(-dt / p.gnss_bias_tau_s)
         f = np.eye(_N)
         f[2, 2] = f[3, 3] = phi
-        f[_H, _R] = dt
+        f[_H, _R] = dt if gyro else 0.0
+        heading_density = p.heading_drift_density if gyro else p.registered_heading_density
         q = np.diag(
             [p.drift_density**2 * dt] * 2
             + [p.gnss_bias_sigma_m**2 * (1 - phi * phi)] * 2
-            + [p.heading_drift_density**2 * dt, p.rate_walk**2 * dt, p.scale_walk**2 * dt]
+            + [heading_density**2 * dt, p.rate_walk**2 * dt, p.scale_walk**2 * dt]
         )
         self.x = f @ self.x
         self.P = f @ self.P @ f.T + q

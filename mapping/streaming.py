@@ -593,6 +593,10 @@ class StreamingEngine:
             reckoned = self._dead_reckoned(last, odometry)
             span = time - self.times[last]
             covered = gyro is not None and self._gyro.get(last) == gyro
+            if not covered:
+                # The chain's turn since the last frame is the registrations', not the
+                # gyro's: the anchor's heading rate error does not act over it.
+                self.anchor.predict(time, gyro=False)
             bridge_sigma = 0.0
             scaled = True
             if edge is not None and edge.i == last:
