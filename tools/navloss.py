@@ -14,7 +14,11 @@ they stood before the survey-end pass) and for the survey-end pass:
   absolute heading of a fused survey is itself 1-3 degrees off the truth on these field
   days: the compass's misalignment is observable only through the GNSS track);
 - drift: how far the position error moved from what it was over the 5 s before the window
-  (the GNSS's own bias is common to both and cancels), median and largest;
+  (the GNSS's own bias is common to both and cancels), median and largest; and the
+  shape error: the same against the error drawn in a straight line from what it was over
+  the 5 s before the window to what it is over the 5 s after (the GNSS's bias wanders by
+  decimetres in 30 s: a map tied to it on both sides of the silence moves with it, which
+  is right, and the shape error is what is left: the chain's);
 - the same over the 20 s after the window: the recovery.
 
 Places: ``turn`` (the window holding the largest turn: a lawnmower U-turn), ``turn1`` (the
@@ -131,15 +135,22 @@ def measure(
             before_heading.append(heading_error(q, ping))
     offset = np.mean(before, axis=0) if before else np.zeros(2)
     heading_offset = float(np.mean(before_heading)) if before_heading else 0.0
+    after = []
+    for ping in pings:
+        if t1 <= ping["time"] < t1 + 5.0 and (q := pose_at(ping)) is not None:
+            after.append((q[0] - ping["east"], q[1] - ping["north"]))
+    offset_after = np.mean(after, axis=0) if after else offset
     out: dict[str, Any] = {}
     for name, lo, hi in (("gap", t0, t1), ("after", t1, t1 + after_s)):
         group = [p for p in pings if lo <= p["time"] < hi]
-        drift, heading, turned = [], [], []
+        drift, heading, turned, shape = [], [], [], []
         for ping in group:
             if (q := pose_at(ping)) is None:
                 continue
             error = np.array([q[0] - ping["east"], q[1] - ping["north"]]) - offset
             drift.append(float(np.hypot(*error)))
+            w = min(max((ping["time"] - t0) / max(t1 - t0, 1e-9), 0.0), 1.0)
+            shape.append(float(np.hypot(*(error - w * (offset_after - offset)))))
             heading.append(abs(heading_error(q, ping)))
             turned.append(abs(heading_error(q, ping) - heading_offset))
         entry: dict[str, Any] = {"pings": len(group), "posed": len(drift)}
@@ -151,9 +162,12 @@ def measure(
                 heading_max_deg=round(float(np.max(heading)), 2),
                 heading_drift_median_deg=round(float(np.median(turned)), 2),
                 heading_drift_max_deg=round(float(np.max(turned)), 2),
+                shape_median_m=round(float(np.median(shape)), 3),
+                shape_max_m=round(float(np.max(shape)), 3),
             )
         out[name] = entry
     out["heading_before_deg"] = round(heading_offset, 2)
+    out["offset_change_m"] = round(float(np.hypot(*(offset_after - offset))), 3)
     return out
 
 
@@ -221,7 +235,8 @@ def _fmt(entry: dict[str, Any]) -> str:
         f"{entry['posed']}/{entry['pings']} posed, heading {entry['heading_median_deg']:.1f}"
         f"/{entry['heading_max_deg']:.1f} (drift {entry['heading_drift_median_deg']:.1f}"
         f"/{entry['heading_drift_max_deg']:.1f}) deg, drift {entry['drift_median_m']:.2f}"
-        f"/{entry['drift_max_m']:.2f} m"
+        f"/{entry['drift_max_m']:.2f} (shape {entry['shape_median_m']:.2f}"
+        f"/{entry['shape_max_m']:.2f}) m"
     )
 
 
