@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest accuracy fuzz overload navloss clean
+.PHONY: demo test lint typecheck pytest accuracy fuzz overload navloss soak clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -59,5 +59,10 @@ navloss: $(STAMP)
 	$(BIN)/python -m tools.navloss --out navloss-out/120s --jobs $(JOBS) --where turn mid --gap 120 \
 		--surveys quadrats-s5-2hz quadrats-s1
 
+# The daemon for hours: the two-hour hectare played at 4x, its memory, descriptors and
+# threads sampled through the survey-end pass (hours, and about 40 GB of disk).
+soak: $(STAMP)
+	$(BIN)/python -m tools.soak --out soak-out
+
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out
+	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out soak-out
