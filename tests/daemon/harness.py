@@ -53,6 +53,17 @@ def write_config(
     return path
 
 
+@dataclass
+class DaemonRun:
+    """What a daemon run under test left: its survey folder, exit code, log and status
+    snapshots (a test's outcome adds what it measured)."""
+
+    survey: Path
+    exit_code: int
+    log: str
+    statuses: list[dict[str, Any]]
+
+
 class DaemonProcess:
     """``seamap run --config`` as a child; stderr goes to ``log_path`` (appended)."""
 

@@ -14,7 +14,6 @@ import json
 import signal
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,7 +22,7 @@ import pytest
 from drivers.mavlink.framing import open_log, scan_tlog
 from drivers.mavlink.navlog import NavReadReport
 from drivers.oculus.logfile import LogReadReport, iter_pings
-from tests.daemon.harness import DaemonProcess, write_config
+from tests.daemon.harness import DaemonProcess, DaemonRun, write_config
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
 
@@ -37,11 +36,7 @@ KILL_AT, RESTART_AFTER = 80.0, 2.0
 
 
 @dataclass
-class Outcome:
-    survey: Path
-    exit_code: int
-    log: str
-    statuses: list[dict[str, Any]]
+class Outcome(DaemonRun):
     outages: dict[str, tuple[float, float]] = field(default_factory=dict)
     """What was really down, UNIX s (from, to) on the receive clock."""
     pings_sent: int = 0

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from drivers.oculus.logfile import iter_pings
-from tests.daemon.harness import DaemonProcess, free_udp_port, write_config
+from tests.daemon.harness import DaemonProcess, DaemonRun, free_udp_port, write_config
 from tools.emulators.playback import SurveyPlayback
 from tools.emulators.relay import UdpRelay
 from tools.navloss import window_start
@@ -37,11 +37,7 @@ GAP_S = 30.0
 
 
 @dataclass
-class Outcome:
-    survey: Path
-    exit_code: int
-    log: str
-    statuses: list[dict[str, Any]]
+class Outcome(DaemonRun):
     cut: tuple[float, float]
     """When the relay was silent (UNIX s, the daemon's stamps' clock)."""
     truth: dict[int, dict[str, Any]]
