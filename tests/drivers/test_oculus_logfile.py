@@ -415,23 +415,32 @@ def test_random_bytes_after_a_log_header_never_crash_the_reader(
     assert report.pings == 0
 
 
+EDITS = st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6)
+"""Bytes set anywhere in a log: (position, wrapping; value)."""
+CUT = st.tuples(st.integers(0, 10**6), st.integers(0, 300))
+"""A span cut out of it: (start, wrapping; length)."""
+
+
 @pytest.mark.fuzz
 @fuzz(150)
-@given(
-    edits=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),
-    span=st.tuples(st.integers(0, 10**6), st.integers(0, 300)),
-)
+@given(edits=EDITS, span=CUT)
 def test_mutated_logs_never_crash_the_reader(
     tmp_path: Path, edits: list[tuple[int, int]], span: tuple[int, int]
 ) -> None:
-    raw = bytearray(_small_log(tmp_path))
+    path = tmp_path / "mutated.oculus"
+    path.write_bytes(_mutated(_small_log(tmp_path), edits, span))
+    _read_all(path)
+
+
+def _mutated(log: bytes, edits: list[tuple[int, int]], span: tuple[int, int]) -> bytes:
+    """``log`` with bytes set at ``edits`` (position, value; positions wrap) and then
+    ``span`` (start, length) cut out."""
+    raw = bytearray(log)
     for position, value in edits:
         raw[position % len(raw)] = value
     start = span[0] % len(raw)
     del raw[start : start + span[1]]
-    path = tmp_path / "mutated.oculus"
-    path.write_bytes(raw)
-    _read_all(path)
+    return bytes(raw)
 
 
 def _small_v2_log(tmp_dir: Path) -> bytes:
@@ -443,23 +452,15 @@ def _small_v2_log(tmp_dir: Path) -> bytes:
 
 @pytest.mark.fuzz
 @fuzz(150)
-@given(
-    edits=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),
-    span=st.tuples(st.integers(0, 10**6), st.integers(0, 300)),
-)
+@given(edits=EDITS, span=CUT)
 def test_mutated_v2_logs_never_crash_the_reader(
     tmp_path: Path, edits: list[tuple[int, int]], span: tuple[int, int]
 ) -> None:
     """A v2 (SQLite) log with bytes changed and a span cut anywhere, its header and pages
     included: the reader gives what it can read, or one OculusFormatError, never another
     exception (SQLite's own errors included)."""
-    raw = bytearray(_small_v2_log(tmp_path))
-    for position, value in edits:
-        raw[position % len(raw)] = value
-    start = span[0] % len(raw)
-    del raw[start : start + span[1]]
     path = tmp_path / "mutated-v2.oculus"
-    path.write_bytes(raw)
+    path.write_bytes(_mutated(_small_v2_log(tmp_path), edits, span))
     report = LogReadReport()
     try:
         pings = list(iter_pings(path, report))
