@@ -97,6 +97,16 @@ def compose(a: Array, rel: RelativePose) -> Array:
     return np.array([x, y, (a[2] + rel.yaw_rad) % (2 * math.pi)])
 
 
+COAST_SPEED_SIGMA_MPS = 0.3
+"""Without the gyro and without the chain's own velocity, how far the boat's velocity may
+be from the filter's held one, per axis (m/s: a survey boat runs at 0.3-1 m/s and may
+have turned since the filter last knew); the registration's gate and the survey graph's
+odometry bridges take it alike."""
+COAST_YAW_RATE_SIGMA_RPS = math.radians(10.0)
+"""... and its turn rate from none (rad/s: a lawnmower turn of 2 m radius at 0.4 m/s is 11
+degrees/s)."""
+
+
 @dataclass(frozen=True, slots=True)
 class RegistrationParams:
     tau_p_m: float = 0.15
@@ -150,13 +160,9 @@ class RegistrationParams:
     """The chain's velocity and turn rate are its registered steps' over this long (the
     last step alone: one registration gone wrong set the rate, the frames after it were
     refused against it, and the chain restarted a metre off)."""
-    coast_speed_sigma_mps: float = 0.3
-    """When the chain has no recent velocity either (it restarted inside the gap): how far
-    the boat's velocity may be from the filter's held one, per axis (m/s: a survey boat
-    runs at 0.3-1 m/s and may have turned since the filter last knew)..."""
-    coast_yaw_rate_sigma_rps: float = math.radians(10.0)
-    """... and its turn rate from none (rad/s: a lawnmower turn of 2 m radius at 0.4 m/s
-    is 11 degrees/s)."""
+    coast_speed_sigma_mps: float = COAST_SPEED_SIGMA_MPS
+    """When the chain has no recent velocity either (it restarted inside the gap)."""
+    coast_yaw_rate_sigma_rps: float = COAST_YAW_RATE_SIGMA_RPS
     coast_gate_sigmas: float = 3.0
     """Without the gyro the gates are tau_p and tau_a widened in quadrature by this many
     sigmas of the prediction's error above."""

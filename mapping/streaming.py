@@ -611,6 +611,9 @@ class StreamingEngine:
             age = time - velocity[2] if velocity is not None else math.inf
             recent = age <= self.params.bridge_velocity_age_s
             bridged = edge is None or edge.i != last
+            rate = (
+                self.local.chain_rate(time, self.params.bridge_velocity_age_s) if bridged else None
+            )
             if reckoned is not None and covered:
                 # The heading follows the gyro (through the filter): over a ping it is good
                 # to a hundredth of a degree, where a registration's yaw is good to a few
@@ -618,13 +621,10 @@ class StreamingEngine:
                 dyaw = reckoned[2]
             elif bridged:
                 # No gyro and no registration: the chain's turn rate, held.
-                rate = self.local.chain_rate(time, self.params.bridge_velocity_age_s)
                 dyaw = rate[2] * span if rate is not None else 0.0
-            if bridged and not covered:
+            if not covered and rate is not None:
                 # The filter held its heading and velocity (no IMU): the chain's own, held.
-                rate = self.local.chain_rate(time, self.params.bridge_velocity_age_s)
-                if rate is not None:
-                    velocity, recent = (rate[0], rate[1], time), True
+                velocity, recent = (rate[0], rate[1], time), True
             if bridged and velocity is not None and recent:
                 # Bridge at the speed the registrations last measured, turned by half the
                 # gyro's turn (the chord of the arc): the boat's speed through a rejection

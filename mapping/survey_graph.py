@@ -17,7 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from mapping.frames import FrameOutcome, SonarMount, relative_pose
+from mapping.frames import (
+    COAST_SPEED_SIGMA_MPS,
+    COAST_YAW_RATE_SIGMA_RPS,
+    FrameOutcome,
+    SonarMount,
+    relative_pose,
+)
 from mapping.fusion import (
     FusionData,
     RelativeConstraint,
@@ -71,13 +77,12 @@ class GraphParams:
     odometry_velocity_sigma_mps: float = 0.05
     odometry_sigma_rad: float = math.radians(0.5)
     odometry_rate_sigma_rps: float = math.radians(0.5)
-    coast_velocity_sigma_mps: float = 0.3
+    coast_velocity_sigma_mps: float = COAST_SPEED_SIGMA_MPS
     """An odometry bridge across frames without the gyro between them (the autopilot link
     silent) grows by this much a second instead (the filter then holds its heading and
-    velocity, and the boat need not: ``RegistrationParams.coast_speed_sigma_mps``)..."""
-    coast_rate_sigma_rps: float = math.radians(10.0)
-    """... and its heading by this much a second (a lawnmower turn is 12-15 degrees a
-    second: ``RegistrationParams.coast_yaw_rate_sigma_rps``)."""
+    velocity, and the boat need not)..."""
+    coast_rate_sigma_rps: float = COAST_YAW_RATE_SIGMA_RPS
+    """... and its heading by this much a second."""
     registration_scale: float = 1.0
     """Multiplies the registrations' information (1: as their covariance says). The
     paper's lambda sweep (Table IV) maps onto it as lambda / 1e4."""
