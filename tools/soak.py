@@ -43,8 +43,11 @@ from seamap.errors import SeamapError
 from tools.demo import _daemon_config, _free_port
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
+from tools.sim.scenarios import STREAM_ONLY
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")
+# Longer than any survey: the mission's end is the cut (s).
+WHOLE_SURVEY_S = 24 * 3600.0
 
 
 def proc_sample(pid: int) -> dict[str, float] | None:
@@ -114,6 +117,10 @@ async def _run(args: argparse.Namespace) -> dict[str, Any]:
         overrides: dict[str, Any] = {}
         if args.minutes is not None:
             overrides["duration_s"] = 60.0 * args.minutes
+        elif args.scenario in STREAM_ONLY:
+            # The whole survey: simulate refuses a stream-only one without a cut, and the
+            # mission's end cuts it anyway (about 18 GB for the hectare).
+            overrides["duration_s"] = WHOLE_SURVEY_S
         summary = simulate(args.scenario, args.seed, sim, **overrides)
         print(summary.describe(), flush=True)
     state_dir = out / "boat"
@@ -209,7 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("soak-out"))
     parser.add_argument("--scenario", default="hectare")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--minutes", type=float, default=None, help="survey length to simulate")
+    parser.add_argument(
+        "--minutes", type=float, default=None,
+        help="survey length to simulate (default: the whole survey)",
+    )  # fmt: skip
     parser.add_argument("--speed", type=float, default=4.0)
     parser.add_argument("--sample-s", type=float, default=10.0)
     parser.add_argument("--timeout-h", type=float, default=8.0)
