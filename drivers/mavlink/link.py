@@ -146,6 +146,8 @@ class _Chooser:
         self.current: str | None = None
 
     def accept(self, name: str, fallback_due: bool) -> bool:
+        if name == self.current:
+            return True  # chosen: no wait for better sources again after a reconnect
         if name not in self.order or (name in self.late and not fallback_due):
             return False
         if self.current is None or self.order.index(name) < self.order.index(self.current):
@@ -371,7 +373,12 @@ class MavlinkLink:
                 int(msg.seq), int(getattr(msg, "total", 0) or 0),
                 int(getattr(msg, "mission_state", 0) or 0), now,
             )  # fmt: skip
-        elif self.stats.link_up:
+        else:
+            # Link down or not: a message from the autopilot is its data. After a silence
+            # the streams come back before the next heartbeat (up to a period later): the
+            # recording has those packets, and so must the live map (a daemon that waited
+            # for the heartbeat left 0.6 s more of silence than its recording holds, and
+            # its live map went elsewhere than a replay of that recording).
             self._convert(msg, kind, now)
 
     def _on_heartbeat(self, now: float) -> None:

@@ -20,6 +20,7 @@ from drivers.mavlink.navlog import NavLog, read_nav_log
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample
 from tests.ports import free_udp_port
 from tools.emulators.autopilot import AutopilotEmulator
+from tools.emulators.relay import UdpRelay
 from tools.sim import simulate
 
 TIMEOUT_S = 10.0
@@ -152,6 +153,40 @@ def test_serial_pty_recovers_when_the_device_goes_away_and_returns(survey):
         assert link.stats.link_downs == 1
         assert link.stats.reopens >= 1
         assert link.stats.bad_packets == 0
+
+    asyncio.run(asyncio.wait_for(main(), 2 * TIMEOUT_S))
+
+
+def test_after_a_silence_samples_flow_before_the_next_heartbeat(survey):
+    """The link cut (a UDP relay gone silent) long enough to be declared down: when it
+    returns, the autopilot's streams are samples at once, not only from its next heartbeat
+    (up to a heartbeat period later) on; the recording has those packets too."""
+    tlog, _ = survey
+
+    async def main() -> None:
+        got: list[Any] = []
+        port = free_udp_port()
+        # Heartbeats every 2 s, the link down after 2.5 s without one: a 3 s cut starting
+        # just after a heartbeat ends a second before the next one.
+        link = MavlinkLink(f"udpin:127.0.0.1:{port}", on_sample=got.append, heartbeat_timeout_s=2.5)
+        emu = AutopilotEmulator.from_tlog(tlog, time_scale=0.4, heartbeat_period_s=2.0)
+        async with link, UdpRelay(port) as relay, emu:
+            await emu.start_udp(relay.port)
+            await until(lambda: link.stats.link_up)
+            seen = link.stats.last_heartbeat
+            await until(lambda: link.stats.last_heartbeat != seen)
+            relay.cut(3.0)
+            await until(lambda: not link.stats.link_up, 5.0)
+            await until(lambda: not relay.is_cut, 5.0)
+            returned = time.time()
+            await until(lambda: link.stats.link_up, 5.0)
+            back_up = link.stats.last_heartbeat
+            assert back_up is not None
+        assert link.stats.link_downs == 1
+        assert back_up - returned > 0.5, "the cut ended well before the next heartbeat"
+        before_heartbeat = [s for s in of(ImuSample, got) if returned <= s.time < back_up]
+        # 55 Hz in the log, played at 0.4x: 22 a second; the old link gave none.
+        assert len(before_heartbeat) >= 0.5 * 22 * (back_up - returned)
 
     asyncio.run(asyncio.wait_for(main(), 2 * TIMEOUT_S))
 
