@@ -112,6 +112,14 @@ class ResolveParams:
     solve_leaves: bool = False
     """Solve the leaves with the rest (``LiveResolver._fuse_without_leaves``), at
     several times the cost at 10 Hz."""
+    live_tail: bool = True
+    """Solve the frames of the live window too (not drawn yet: only the drawn frames
+    move), so that the stretch's end is solved with the fixes and compass readings the
+    live chain has had since. Without them a re-solve's last drawn frame takes only what
+    came before it, while the live frames after it are where everything up to now puts
+    them: after the autopilot link was silent (quadrats seed 5 at 2 Hz, 30 s over a
+    U-turn), the stretch's end took the chain's dead reckoning through the silence and
+    the live map jumped by 6 degrees or 0.8 m between two frames."""
 
 
 @dataclass(slots=True)
@@ -322,7 +330,7 @@ class LiveResolver:
         first = next(iter(self.drawn))
         last = next(reversed(self.drawn))
         start = self.accepted.index(first) if first in self.times else 0
-        nodes = [k for k in self.accepted[start:] if k <= last]
+        nodes = [k for k in self.accepted[start:] if p.live_tail or k <= last]
         hold_info = diagonal_sqrt_info(
             (p.hold_sigma_m, p.hold_sigma_m, math.radians(p.hold_sigma_deg))
         )

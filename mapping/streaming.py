@@ -864,8 +864,14 @@ class StreamingEngine:
         else:
             new = old
         solved = new.poses(in_gnss)
-        last = nodes[-1]
-        was_last = self.poses[last].copy()
+        # Where the chain joins the solution: the first frame of the live window (solved
+        # with the rest: ``ResolveParams.live_tail``), else the last drawn frame.
+        m_join = nodes.index(next(reversed(resolver.drawn)))
+        if m_join + 1 < len(nodes) and nodes[m_join + 1] in self._chain:
+            m_join += 1
+            was_join = self._live_pose(nodes[m_join])
+        else:
+            was_join = self.poses[nodes[m_join]].copy()
         moved_nodes: list[int] = []
         for m, k in enumerate(nodes):
             drawn = resolver.drawn.get(k)
@@ -903,24 +909,27 @@ class StreamingEngine:
                 self.closures.store.move(k, pose, self.mount.sonar_pose(pose), correction)
         if self.closures is not None:
             self.closures.rebase()
-        # The chain carries on from the re-solved map: the frames drawn since the last
-        # node (the live window) move with that node. They keep their own heading: the
-        # last node is the solution's least certain frame, and turned with it the chain
-        # on quadrats seed 6 at 2 Hz took a 2.6 degree turn at the last re-solve and drew
-        # the last lane 0.5 m off (live lanes 25 cm; 14 without).
+        # The chain carries on from the re-solved map: the live window moves so that its
+        # first frame is where the solution puts it, next to the last drawn frame (moved
+        # with the last drawn frame instead, the live window kept what the anchor's
+        # corrections between two finalised blocks had put between them: 0.2-0.7 m
+        # steps in the live map after the autopilot link came back). They keep their own
+        # heading: the solution's end is its least certain part, and turned with it the
+        # chain on quadrats seed 6 at 2 Hz took a 2.6 degree turn at the last re-solve and
+        # drew the last lane 0.5 m off (live lanes 25 cm; 14 without).
         n = self._last_chained
         if n is not None and n in self._chain:
-            move_e = float(solved[-1][0] - was_last[0])
-            move_n = float(solved[-1][1] - was_last[1])
+            move_e = float(solved[m_join][0] - was_join[0])
+            move_n = float(solved[m_join][1] - was_join[1])
             self.anchor.x[0] += move_e
             self.anchor.x[1] += move_n
-            # What the GNSS sees of the chain stays: the fixes since the last node were
-            # taken against it, and the solution's bias is not known beyond that node
+            # What the GNSS sees of the chain stays: the fixes since the joining frame were
+            # taken against it, and the solution's bias is not known beyond that frame
             # (there it decays towards zero). Taking the solution's bias and its
             # covariance instead made quadrats seed 6 at 2 Hz 19 -> 42 cm live. The
             # fixes are taken into the new drawn frame: where the boat is, they move by
             # what the frame moved there.
-            q = in_gnss[-1]
+            q = in_gnss[m_join]
             e0, n0 = old.point(float(q[0]), float(q[1]))
             e1, n1 = new.point(float(q[0]), float(q[1]))
             self.anchor.x[2] += (e1 - e0) - move_e
