@@ -139,19 +139,7 @@ def test_daemon_rode_out_the_silence(outcome: Outcome) -> None:
     assert state["state"] == "done"
 
 
-LIVE_JUMP = pytest.mark.xfail(
-    reason="the live map in the daemon (its stamps and processing order vary from run to "
-    "run): 60/60 posed every time, but in two runs of four it jumped (0.9 m at one frame "
-    "in the silence; after 30 s 0.45 m off, 0.07 m in the others). The same silence through the "
-    "streaming engine, deterministic, is tested in tests/mapping/test_navloss.py. Not yet "
-    "understood: issue 13, session 15's note",
-    strict=False,
-)
-
-
-@pytest.mark.parametrize(
-    "name", ["trajectory.csv", pytest.param("live-trajectory-001.csv", marks=LIVE_JUMP)]
-)
+@pytest.mark.parametrize("name", ["trajectory.csv", "live-trajectory-001.csv"])
 def test_the_chain_carries_the_boat_through_the_turn(outcome: Outcome, name: str) -> None:
     gap = _gap(outcome, name)
     print(
