@@ -44,7 +44,7 @@ def daemon_target(
     endpoints and its listen endpoints reached on loopback: the daemon's own config on the
     boat works as is) and/or an explicit zenoh ``endpoint`` and ``vehicle``. None when
     neither config nor endpoint is given. SeamapError for a malformed endpoint or id."""
-    from seamap.shore_state import id_problem
+    from seamap.shore.state import id_problem
     from seamap.zenoh_io import endpoint_problem
 
     if config is None and endpoint is None:

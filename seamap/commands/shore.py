@@ -1,5 +1,5 @@
 """``seamap shore``: the shore station, following a boat's live map over zenoh (see
-``seamap.shore``)."""
+``seamap.shore.station``)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ and to its liveliness token, and catches up with a ``get`` of every current tile
 and each time the boat's token (re)appears. zenoh callbacks only turn what arrives into
 ``_Received`` items on one queue (``_hand_over``, the single bridge from zenoh's threads);
 ``run`` takes them off on the caller's thread, applies them to what it holds
-(``seamap.shore_state``) and, at a steady cadence, shows a status line and rewrites
+(``seamap.shore.state``) and, at a steady cadence, shows a status line and rewrites
 (atomically, only what changed):
 
 - ``DIR/{vehicle}/{survey}/mosaic.tif`` and ``mosaic.png``: the survey's tiles held;
@@ -36,7 +36,7 @@ import zenoh
 
 from seamap.config import SiteConfig, ZenohConfig
 from seamap.errors import SeamapError
-from seamap.shore_state import (
+from seamap.shore.state import (
     BadPayload,
     HeldSurvey,
     HeldTile,

@@ -1,0 +1,13 @@
+"""The shore station (``seamap shore``): follow boats' live maps over zenoh.
+
+- ``seamap.shore.station``: the zenoh intake (subscriptions, liveliness, catch-up) and
+  the files it keeps on disk;
+- ``seamap.shore.state``: what it holds of each vehicle (tiles, track, status) and the
+  file writers.
+
+The zenoh contract itself (keys, payloads) is shared with the boat in ``seamap.zenoh_io``.
+"""
+
+from seamap.shore.station import ShoreSettings, ShoreStation, serve, shore_settings
+
+__all__ = ["ShoreSettings", "ShoreStation", "serve", "shore_settings"]
