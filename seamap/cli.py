@@ -18,6 +18,7 @@ from seamap.commands import (
     demo,
     info,
     replay,
+    router,
     run,
     security,
     shore,
@@ -26,7 +27,7 @@ from seamap.commands import (
 )
 from seamap.errors import SeamapError
 
-COMMANDS = (info, simulate, replay, run, ctl, shore, bench, demo, security, survey)
+COMMANDS = (info, simulate, replay, run, ctl, shore, router, bench, demo, security, survey)
 
 
 def build_parser() -> argparse.ArgumentParser:
