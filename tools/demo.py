@@ -1,21 +1,29 @@
 """The whole system on one machine, on loopback (what ``seamap demo`` and ``make demo`` run).
 
-1. The simulator makes a survey (the paper's quadrat site by default).
-2. The sonar and autopilot emulators play it on 127.0.0.1 on one clock
-   (``tools.emulators.playback``); the real daemon (``seamap run``, a child process) records
-   and maps it live and publishes on zenoh (``tcp/127.0.0.1:7447`` unless told otherwise,
-   vehicle ``demo``); the shore station (``seamap shore``, another child) follows it.
-3. At the end of the playback a survey stop request goes over zenoh, as the shore would
-   send it; the daemon's survey-end pass writes the result folder and publishes the final
-   tiles; the shore's mosaic is compared with the daemon's.
+1. The simulator makes a survey (the paper's quadrat site by default) for each boat
+   (``--boats N``: neighbouring areas, 24 m apart to the east, one seed each).
+2. The sonar and autopilot emulators play each on 127.0.0.1 on one clock
+   (``tools.emulators.playback``); each boat's real daemon (``seamap run``, a child process)
+   records and maps it live and publishes on zenoh through a zenoh router (``seamap
+   router``, a child; its endpoint ``tcp/127.0.0.1:7447`` unless told otherwise; vehicle
+   ``demo``, then ``demo2``, ``demo3``...); the shore station (``seamap shore``, another
+   child) follows every boat, and with ``--web`` serves the live map page.
+3. At the end of the playback a survey stop request goes over zenoh to each boat, as the
+   shore would send it; the survey-end passes write the result folders and publish the
+   final tiles; the shore's mosaics are compared with the daemons'.
 4. Accuracy against the simulator's truth: the truth's ping times are moved to the
    times the daemon stamped on receipt (matched by ping id), and the recorded survey is
    scored by replaying it — the same computation as the daemon's survey-end pass.
+
+With ``--secure`` the one boat's daemon is the zenoh endpoint itself (a peer with TLS, the
+shore's password and the boat's access rules from ``seamap security init``), without a
+router: the security set is made for one boat and its shores.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import json
 import math
@@ -43,6 +51,9 @@ SEAMAP = str(Path(sys.executable).parent / "seamap")
 SHORE_WAIT_S = 30.0
 """How long the shore may take to hold the final tiles and rewrite its mosaic (it writes
 every 5 s)."""
+NEIGHBOUR_EAST_M = 24.0
+"""How far east each next boat's survey lies (the quadrat site's lanes span 8 m)."""
+MAX_BOATS = 4
 
 
 @dataclass(frozen=True)
@@ -51,20 +62,45 @@ class DemoOptions:
     scenario: str = "quadrats"
     seed: int = 1
     zenoh_listen: str = "tcp/127.0.0.1:7447"
+    """The router's endpoint (the boat's own with ``secure``)."""
     max_pings: int | None = None
     secure: bool = False
     """Run the link on a set ``seamap security init`` makes (TLS with certificates on both
-    sides, the shore's password, the boat's access rules), on the same port."""
+    sides, the shore's password, the boat's access rules), on the same port, one boat, no
+    router."""
+    boats: int = 1
+    web: str | None = None
+    """``[HOST:]PORT`` of the shore's live map page; the demo then stays up after the
+    surveys until SIGINT or SIGTERM."""
 
 
 @dataclass(frozen=True)
 class _Link:
-    """The daemon's [zenoh] table and the shore's (a plain loopback one, or the set's)."""
+    """The daemons' [zenoh] table and the shore's (through the router, or the set's)."""
 
     boat: ZenohConfig
     shore: ZenohConfig
     shore_config: Path | None
     """A site file holding the shore's [zenoh] (secure), else None (``--connect``)."""
+    router: str | None
+    """The router's listen endpoint (None: the boat is the endpoint)."""
+
+
+@dataclass
+class _Boat:
+    vehicle: str
+    sim: Path
+    state_dir: Path
+    log: Path
+    config: Path | None = None
+    play: SurveyPlayback | None = None
+    daemon: asyncio.subprocess.Process | None = None
+    status: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def vehicle_ids(boats: int) -> list[str]:
+    """``demo``, ``demo2``, ``demo3``...: the first is the contract's demo vehicle."""
+    return [VEHICLE if n == 1 else f"{VEHICLE}{n}" for n in range(1, boats + 1)]
 
 
 def _link(options: DemoOptions) -> _Link:
@@ -72,9 +108,10 @@ def _link(options: DemoOptions) -> _Link:
     connect = _connect_of(listen)
     if not options.secure:
         return _Link(
-            ZenohConfig(mode="peer", listen=[listen], connect=[]),
+            ZenohConfig(mode="client", listen=[], connect=[connect]),
             ZenohConfig(mode="client", listen=[], connect=[connect]),
             None,
+            listen,
         )
     from seamap.security import init_security
 
@@ -92,7 +129,7 @@ def _link(options: DemoOptions) -> _Link:
     )  # fmt: skip
     shore_site = options.out / "shore-site.toml"
     shore_site.write_text(dump_config(SiteConfig(zenoh=shore)))
-    return _Link(boat, shore, shore_site)
+    return _Link(boat, shore, shore_site, None)
 
 
 def _free_port(kind: int) -> int:
@@ -109,68 +146,166 @@ def _step(n: int, text: str) -> None:
 
 def run_demo(options: DemoOptions) -> int:
     """Run the demo; 0 on success. SeamapError for what the user can fix (a busy port...)."""
+    if not 1 <= options.boats <= MAX_BOATS:
+        raise SeamapError(f"--boats {options.boats}: 1 to {MAX_BOATS}")
+    if options.secure and options.boats > 1:
+        raise SeamapError("--secure runs one boat (its security set is made for one boat)")
     out = options.out
-    sim = out / "sim"
-    _step(1, f"simulating the '{options.scenario}' survey (seed {options.seed}) into {sim}")
-    started = time.monotonic()
-    summary = simulate(options.scenario, options.seed, sim, max_pings=options.max_pings)
-    print(summary.describe())
-    print(f"      done in {time.monotonic() - started:.1f} s", flush=True)
-    return asyncio.run(_live(options, sim))
+    boats = []
+    for n, vehicle in enumerate(vehicle_ids(options.boats)):
+        one = options.boats == 1
+        sim = out / ("sim" if one else f"sim-{vehicle}")
+        boats.append(
+            _Boat(vehicle, sim, out / ("boat" if one else f"boat-{vehicle}"),
+                  out / ("daemon.log" if one else f"daemon-{vehicle}.log"))
+        )  # fmt: skip
+        seed = options.seed + n
+        where = f" {NEIGHBOUR_EAST_M * n:.0f} m east of the first" if n else ""
+        _step(1, f"simulating the '{options.scenario}' survey (seed {seed}){where} into {sim}")
+        started = time.monotonic()
+        summary = simulate(options.scenario, seed, sim, **_neighbour(options, n))
+        print(summary.describe())
+        print(f"      done in {time.monotonic() - started:.1f} s", flush=True)
+    return asyncio.run(_live(options, boats))
 
 
-async def _live(options: DemoOptions, sim: Path) -> int:
+def _neighbour(options: DemoOptions, n: int) -> dict[str, Any]:
+    """The simulator's overrides of boat ``n`` (0 first): its cut and, after the first,
+    its site origin moved east."""
+    overrides: dict[str, Any] = {"max_pings": options.max_pings}
+    if n:
+        from tools.sim.scenarios import resolve_scenario
+
+        s = resolve_scenario(options.scenario)
+        metres_per_degree = 111_320.0 * math.cos(math.radians(s.origin_lat_deg))
+        overrides["origin_lon_deg"] = s.origin_lon_deg + NEIGHBOUR_EAST_M * n / metres_per_degree
+    return overrides
+
+
+async def _live(options: DemoOptions, boats: list[_Boat]) -> int:
     out = options.out
-    state_dir = out / "boat"
     shore_dir = out / "shore"
-    mavlink_port = _free_port(2)  # SOCK_DGRAM
     link = _link(options)
-    async with SurveyPlayback(
-        sim / "sonar.oculus", sim / "nav.tlog", mavlink="udp", mavlink_target_port=mavlink_port
-    ) as play:
-        config = _daemon_config(sim, out / "site.toml", state_dir, play.sonar.tcp_port,
-                                mavlink_port, link.boat)  # fmt: skip
-        _step(2, "starting the emulators, the boat daemon and the shore station on 127.0.0.1")
-        print(f"      sonar emulator tcp/127.0.0.1:{play.sonar.tcp_port}, autopilot emulator "
-              f"-> udp/127.0.0.1:{mavlink_port}, zenoh {link.boat.listen[0]}"
-              + (f" (secured by {out / 'security'})" if options.secure else ""))  # fmt: skip
-        print(f"      daemon: seamap run --config {config} (log {out / 'daemon.log'})")
-        daemon = await _spawn([SEAMAP, "run", "--config", str(config)], out / "daemon.log")
+    children: list[asyncio.subprocess.Process] = []
+    async with contextlib.AsyncExitStack() as stack:
+        _step(2, "starting the emulators, the boat daemons, the zenoh router and the shore "
+                 "station on 127.0.0.1")  # fmt: skip
+        if link.router is not None:
+            router = await _spawn(
+                [SEAMAP, "router", "--listen", link.router], out / "router.log"
+            )  # fmt: skip
+            children.append(router)
+            await _wait_log(out / "router.log", "listening on", router)
+            print(f"      router: seamap router --listen {link.router} (log {out / 'router.log'})")
+        for boat in boats:
+            mavlink_port = _free_port(2)  # SOCK_DGRAM
+            boat.play = await stack.enter_async_context(
+                SurveyPlayback(boat.sim / "sonar.oculus", boat.sim / "nav.tlog", mavlink="udp",
+                               mavlink_target_port=mavlink_port)
+            )  # fmt: skip
+            boat.config = _daemon_config(
+                boat.sim, boat.state_dir.parent / f"site-{boat.vehicle}.toml"
+                if len(boats) > 1 else out / "site.toml",
+                boat.state_dir, boat.play.sonar.tcp_port, mavlink_port, link.boat, boat.vehicle,
+            )  # fmt: skip
+            zenoh_at = link.router or link.boat.listen[0]
+            print(f"      {boat.vehicle}: sonar emulator tcp/127.0.0.1:{boat.play.sonar.tcp_port}, "
+                  f"autopilot emulator -> udp/127.0.0.1:{mavlink_port}, zenoh {zenoh_at}"
+                  + (f" (secured by {out / 'security'})" if options.secure else ""))  # fmt: skip
+            print(f"      daemon: seamap run --config {boat.config} (log {boat.log})")
+            boat.daemon = await _spawn([SEAMAP, "run", "--config", str(boat.config)], boat.log)
+            children.append(boat.daemon)
         reach = (
-            ["--config", str(link.shore_config)] if link.shore_config is not None
+            ["--config", str(link.shore_config), "--vehicle", VEHICLE]
+            if link.shore_config is not None
             else ["--connect", link.shore.connect[0]]
         )  # fmt: skip
+        web = ["--web", options.web] if options.web is not None else []
         shore = await _spawn(
-            [SEAMAP, "shore", *reach, "--vehicle", VEHICLE, "--out", str(shore_dir)],
-            out / "shore.log",
+            [SEAMAP, "shore", *reach, "--out", str(shore_dir), *web], out / "shore.log"
         )  # fmt: skip
-        print(f"      shore:  seamap shore --vehicle {VEHICLE} --out {shore_dir} "
-              f"(log {out / 'shore.log'})", flush=True)  # fmt: skip
+        children.insert(0, shore)
+        print(f"      shore:  seamap shore --out {shore_dir} {' '.join(web)}".rstrip()
+              + f" (log {out / 'shore.log'})", flush=True)  # fmt: skip
         try:
-            await asyncio.wait_for(play.started.wait(), 60)
-            _step(3, f"surveying: {play.pings_total} pings, about {play.pings_total / 10:.0f} s")
-            status = await _follow(play, state_dir, daemon)
+            if web:
+                page = await _wait_log(out / "shore.log", "web: ", shore)
+                print(f"      live map: {page.split('web: ', 1)[1].strip()}", flush=True)
+            plays = [boat.play for boat in boats if boat.play is not None]
+            await asyncio.wait_for(asyncio.gather(*(p.started.wait() for p in plays)), 60)
+            total, longest = sum(p.pings_total for p in plays), max(p.pings_total for p in plays)
+            _step(3, f"surveying: {total} pings, about {longest / 10:.0f} s")
+            await _follow(boats)
             _step(4, "survey end: a stop request over zenoh; the survey-end pass maps it again")
-            survey = await asyncio.to_thread(_stop_survey, link.shore)
-            folder = state_dir / "surveys" / survey
-            final = await _wait_done(folder, daemon)
-            shore_tif = shore_dir / VEHICLE / survey / "mosaic.tif"
-            same = await _wait_shore(shore_tif, folder / "mosaic.tif", SHORE_WAIT_S)
+            results = []
+            for boat in boats:
+                assert boat.daemon is not None
+                survey = await asyncio.to_thread(_stop_survey, link.shore, boat.vehicle)
+                folder = boat.state_dir / "surveys" / survey
+                results.append((boat, folder, await _wait_done(folder, boat.daemon)))
+            for boat, folder, final in results:
+                shore_tif = shore_dir / boat.vehicle / folder.name / "mosaic.tif"
+                same = await _wait_shore(shore_tif, folder / "mosaic.tif", SHORE_WAIT_S)
+                result = final["result"]
+                live = boat.status["frames"]["mapped"] if boat.status else "?"
+                print(f"      {boat.vehicle}: {result['frames_mapped']} of "
+                      f"{result['frames_read']} frames mapped ({live} live), survey-end pass "
+                      f"{result['seconds']:.1f} s")  # fmt: skip
+                print(f"      result folder: {folder} (mosaic.tif, mosaic.png, trajectory.csv, "
+                      "report.json)")  # fmt: skip
+                _tell_shore(shore_tif, same)
+            if web:
+                print("      the live map page stays up: Ctrl-C (or SIGTERM) ends the demo",
+                      flush=True)  # fmt: skip
+                await _until_signal(children)
         finally:
-            for child in (shore, daemon):
+            for child in children:
                 if child.returncode is None:
                     child.send_signal(signal.SIGTERM)
-            codes = [await asyncio.wait_for(c.wait(), 120) for c in (shore, daemon)]
-    result = final["result"]
-    live = status["frames"]["mapped"] if status else "?"
-    print(f"      {result['frames_mapped']} of {result['frames_read']} frames mapped "
-          f"({live} live), survey-end pass {result['seconds']:.1f} s")  # fmt: skip
-    print(f"      result folder: {folder} (mosaic.tif, mosaic.png, trajectory.csv, report.json)")
-    _tell_shore(shore_tif, same)
+            codes = [await asyncio.wait_for(c.wait(), 120) for c in children]
     _step(5, "accuracy against the simulator's truth")
-    _accuracy(sim, folder, load_config(config), out / "accuracy")
-    print(f"demo output in {out.resolve()} (daemon exit {codes[1]}, shore exit {codes[0]})")
-    return 0 if codes == [0, 0] else 1
+    for boat, folder, _ in results:
+        assert boat.config is not None
+        if len(boats) > 1:
+            print(f"      {boat.vehicle}:")
+        scores = out / ("accuracy" if len(boats) == 1 else f"accuracy-{boat.vehicle}")
+        _accuracy(boat.sim, folder, load_config(boat.config), scores)
+    names = ["shore", *(["router"] if link.router else []), *(f"{b.vehicle} daemon" for b in boats)]
+    exits = ", ".join(f"{name} exit {code}" for name, code in zip(names, codes, strict=True))
+    print(f"demo output in {out.resolve()} ({exits})")
+    return 0 if all(code == 0 for code in codes) else 1
+
+
+async def _wait_log(log: Path, text: str, child: asyncio.subprocess.Process) -> str:
+    """The first line of ``log`` holding ``text``, once the child wrote it (SeamapError if
+    it stops first or takes more than 30 s)."""
+    deadline = time.monotonic() + 30.0
+    while True:
+        for line in log.read_text(errors="replace").splitlines():
+            if text in line:
+                return line
+        if child.returncode is not None:
+            raise SeamapError(f"{log.stem} stopped (exit {child.returncode}); see {log}")
+        if time.monotonic() > deadline:
+            raise SeamapError(f"{log.stem} did not start in 30 s; see {log}")
+        await asyncio.sleep(0.1)
+
+
+async def _until_signal(children: list[asyncio.subprocess.Process]) -> None:
+    """Wait for SIGINT or SIGTERM (or a child to stop)."""
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        waits: list[asyncio.Task[Any]] = [asyncio.create_task(stop.wait())]
+        waits += [asyncio.create_task(child.wait()) for child in children]
+        _, pending = await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        for task in pending:
+            task.cancel()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
 
 
 def _connect_of(listen: str) -> str:
@@ -179,13 +314,13 @@ def _connect_of(listen: str) -> str:
 
 def _daemon_config(
     sim: Path, path: Path, state_dir: Path, sonar_port: int, mavlink_port: int,
-    zenoh_table: ZenohConfig,
+    zenoh_table: ZenohConfig, vehicle: str = VEHICLE,
 ) -> Path:  # fmt: skip
     import tomllib
 
     data: dict[str, Any] = tomllib.loads((sim / "site.toml").read_text())
     data.setdefault("daemon", {}).update(
-        vehicle=VEHICLE, state_dir=str(state_dir), survey_autostart=True, health_interval_s=10.0
+        vehicle=vehicle, state_dir=str(state_dir), survey_autostart=True, health_interval_s=10.0
     )
     data.setdefault("sonar", {}).update(address="127.0.0.1", tcp_port=sonar_port)
     data.setdefault("mavlink", {}).update(url=f"udpin:127.0.0.1:{mavlink_port}")
@@ -211,38 +346,44 @@ async def _status(state_dir: Path) -> dict[str, Any] | None:
     return status
 
 
-async def _follow(
-    play: SurveyPlayback, state_dir: Path, daemon: asyncio.subprocess.Process
-) -> dict[str, Any]:
-    """Progress every 5 s until the playback ends; the daemon's last status."""
-    status: dict[str, Any] = {}
+async def _follow(boats: list[_Boat]) -> None:
+    """Progress every 5 s until every playback ends; each boat's last status kept."""
     started = time.monotonic()
-    while not play.done.is_set():
-        await asyncio.wait({asyncio.create_task(play.done.wait())}, timeout=5.0)
-        if daemon.returncode is not None:
-            raise SeamapError(f"the daemon stopped (exit {daemon.returncode}); see daemon.log")
-        status = await _status(state_dir) or status
-        if status:
-            frames, links = status["frames"], status["links"]
-            print(
-                f"      {time.monotonic() - started:5.0f} s  pings sent "
-                f"{play.sonar.pings_sent}/{play.pings_total}  daemon: {frames['mapped']} mapped, "
-                f"{frames['rejected']} rejected, {frames['skipped']} skipped, lag "
-                f"{status['lag_s']:.2f} s, tiles published {status.get('tiles_published', 0)}, "
-                f"sonar {'up' if links['sonar']['up'] else 'down'}, autopilot "
-                f"{'up' if links['mavlink']['up'] else 'down'}",
-                flush=True,
-            )
+    plays = [boat.play for boat in boats if boat.play is not None]
+    while not all(p.done.is_set() for p in plays):
+        done = asyncio.gather(*(p.done.wait() for p in plays))
+        await asyncio.wait({asyncio.ensure_future(done)}, timeout=5.0)
+        for boat in boats:
+            assert boat.daemon is not None and boat.play is not None
+            if boat.daemon.returncode is not None:
+                raise SeamapError(
+                    f"the {boat.vehicle} daemon stopped (exit {boat.daemon.returncode}); "
+                    f"see {boat.log}"
+                )
+            boat.status = await _status(boat.state_dir) or boat.status
+            if boat.status:
+                status = boat.status
+                frames, links = status["frames"], status["links"]
+                print(
+                    f"      {time.monotonic() - started:5.0f} s  {boat.vehicle}: pings sent "
+                    f"{boat.play.sonar.pings_sent}/{boat.play.pings_total}, {frames['mapped']} "
+                    f"mapped, {frames['rejected']} rejected, {frames['skipped']} skipped, lag "
+                    f"{status['lag_s']:.2f} s, tiles published {status.get('tiles_published', 0)}"
+                    f", sonar {'up' if links['sonar']['up'] else 'down'}, autopilot "
+                    f"{'up' if links['mavlink']['up'] else 'down'}",
+                    flush=True,
+                )
     # The last pings leave the reorder window; the recorder flushes.
     await asyncio.sleep(1.5)
-    return await _status(state_dir) or status
+    for boat in boats:
+        boat.status = await _status(boat.state_dir) or boat.status
 
 
-def _stop_survey(shore: ZenohConfig) -> str:
+def _stop_survey(shore: ZenohConfig, vehicle: str = VEHICLE) -> str:
     session = open_session(shore)
     try:
         replies = list(
-            session.get(control_key(VEHICLE), payload=b'{"action": "stop"}', timeout=10.0)
+            session.get(control_key(vehicle), payload=b'{"action": "stop"}', timeout=10.0)
         )
     finally:
         session.close()
@@ -251,7 +392,7 @@ def _stop_survey(shore: ZenohConfig) -> str:
             answer = json.loads(reply.ok.payload.to_bytes())
             if answer.get("ok") and answer.get("survey"):
                 return str(answer["survey"])
-    raise SeamapError("the daemon did not answer the survey stop request over zenoh")
+    raise SeamapError(f"the {vehicle} daemon did not answer the survey stop request over zenoh")
 
 
 async def _wait_done(folder: Path, daemon: asyncio.subprocess.Process) -> dict[str, Any]:

@@ -1,6 +1,7 @@
-"""``seamap demo [--out DIR] [--zenoh-listen ENDPOINT] [--secure]``: the whole system on loopback
-(``tools.demo``): emulators play a simulated survey, the daemon maps it live and publishes
-on zenoh, the shore station follows, and the result is scored against the truth."""
+"""``seamap demo [--out DIR] [--boats N] [--web [HOST:]PORT] [--zenoh-listen ENDPOINT]
+[--secure]``: the whole system on loopback (``tools.demo``): emulators play simulated
+surveys, the daemons map them live and publish through a zenoh router, the shore station
+follows (and serves the live map page), and the results are scored against the truth."""
 
 from __future__ import annotations
 
@@ -14,18 +15,27 @@ def register(subparsers: Any) -> None:
         "demo",
         help="the whole system on this machine: emulators, daemon, zenoh, shore station",
         description=(
-            "Simulate a survey; play it through the sonar and autopilot emulators on "
-            "127.0.0.1; the daemon (seamap run) records, maps and publishes it on zenoh "
-            "(vehicle 'demo'); the shore station (seamap shore) follows; at the end the "
-            "survey-end pass writes the result and the accuracy against the truth is printed."
+            "Simulate a survey for each boat (neighbouring areas); play each through the sonar "
+            "and autopilot emulators on 127.0.0.1; each boat's daemon (seamap run) records, "
+            "maps and publishes it through a zenoh router (seamap router; vehicles 'demo', "
+            "'demo2', ...); the shore station (seamap shore) follows every boat; at the end "
+            "the survey-end passes write the results and the accuracy against the truth is "
+            "printed. With --web the shore serves the live map page, and the demo stays up "
+            "after the surveys until Ctrl-C or SIGTERM."
         ),
     )
     parser.add_argument("--out", type=Path, default=Path("demo-out"), help="output folder")
     parser.add_argument(
         "--zenoh-listen",
         default="tcp/127.0.0.1:7447",
-        help="the daemon's zenoh endpoint (default tcp/127.0.0.1:7447)",
+        help="the router's zenoh endpoint (default tcp/127.0.0.1:7447; with --secure the "
+        "boat's own)",
     )
+    parser.add_argument("--boats", type=int, default=1, help="simulated boats (1 to 4)")
+    parser.add_argument(
+        "--web", metavar="[HOST:]PORT",
+        help="serve the shore's live map page there (host 127.0.0.1 unless given)",
+    )  # fmt: skip
     parser.add_argument("--scenario", default="quadrats", help="simulator scenario")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--max-pings", type=int, help="cut the survey short (pings)")
@@ -40,8 +50,8 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from tools.demo import DemoOptions, run_demo
 
-    return run_demo(
-        DemoOptions(
-            args.out, args.scenario, args.seed, args.zenoh_listen, args.max_pings, args.secure
-        )
-    )
+    options = DemoOptions(
+        args.out, args.scenario, args.seed, args.zenoh_listen, args.max_pings, args.secure,
+        args.boats, args.web,
+    )  # fmt: skip
+    return run_demo(options)
