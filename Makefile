@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest accuracy fuzz overload navloss soak clean
+.PHONY: demo test lint typecheck pytest chromium accuracy fuzz overload navloss soak clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -33,8 +33,16 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-pytest: $(STAMP)
+pytest: $(STAMP) chromium
 	$(BIN)/pytest -q -n $(TEST_JOBS) --dist loadfile
+
+# The live map page's browser tests run Debian's Chromium (Playwright's own download needs
+# the internet); as root, install it when missing. Without it those tests skip, saying why.
+chromium:
+	@if [ "$$(id -u)" = 0 ] && [ ! -x /usr/bin/chromium ]; then \
+		(apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium) \
+			>/dev/null 2>&1 || echo "chromium not installed: the browser tests will skip"; \
+	fi
 
 # The accuracy matrix: simulated surveys replayed in every mode (hours; not in `make test`).
 accuracy: $(STAMP)

@@ -19,7 +19,8 @@ def register(subparsers: Any) -> None:
             "DIR: {vehicle}/{survey}/mosaic.tif and mosaic.png, {vehicle}/track.csv and "
             "track.geojson, {vehicle}/status.json, rewritten every 5 s. Catches up with every "
             "current tile at start and whenever the boat comes back. Runs until Ctrl-C or "
-            "SIGTERM (or --duration), then writes its files one last time."
+            "SIGTERM (or --duration), then writes its files one last time. With --web, also "
+            "serves a live map page of every boat followed."
         ),
     )
     parser.add_argument(
@@ -57,6 +58,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (scripts, tests)"
     )
+    parser.add_argument(
+        "--web",
+        metavar="[HOST:]PORT",
+        help="also serve the live map page there (host 127.0.0.1 unless given; port 0: a "
+        "free port); its address is printed once it serves",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -64,6 +71,11 @@ def run(args: argparse.Namespace) -> int:
     from seamap.config import load_config
     from seamap.shore import serve, shore_settings
 
+    web = None
+    if args.web is not None:
+        from seamap.shore.web import parse_web_address  # aiohttp only when the page is wanted
+
+        web = parse_web_address(args.web)
     if args.duration is not None and not args.duration > 0:
         raise SeamapError(f"--duration {args.duration:g}: must be more than 0 seconds")
     config = load_config(args.config) if args.config is not None else None
@@ -76,4 +88,4 @@ def run(args: argparse.Namespace) -> int:
         vehicle=args.vehicle,
         survey=args.survey,
     )
-    return serve(settings, args.duration)
+    return serve(settings, args.duration, web)

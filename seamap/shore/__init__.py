@@ -3,7 +3,9 @@
 - ``seamap.shore.station``: the zenoh intake (subscriptions, liveliness, catch-up) and
   the files it keeps on disk;
 - ``seamap.shore.state``: what it holds of each vehicle (tiles, track, status) and the
-  file writers.
+  file writers;
+- ``seamap.shore.web``: the live map page (``--web``), served from its own thread and
+  ``static/`` (plain JavaScript).
 
 The zenoh contract itself (keys, payloads) is shared with the boat in ``seamap.zenoh_io``.
 """

@@ -13,6 +13,9 @@ and each time the boat's token (re)appears. zenoh callbacks only turn what arriv
 - ``DIR/{vehicle}/status.json``: its latest status.
 
 Bad payloads are counted and told in one line; they never stop the station.
+
+An ``on_event`` listener (the live map page, ``seamap.shore.web``) is told each item
+applied, as a ``ShoreEvent``, on the run thread; it must hand over and return at once.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from seamap.shore.state import (
 )
 from seamap.zenoh_io import (
     ROOT,
+    TileInfo,
     alive_key,
     endpoint_problem,
     open_session,
@@ -132,6 +136,26 @@ def shore_settings(
     return ShoreSettings(out_dir=out_dir, zenoh=session, vehicle=vehicle, survey=survey)
 
 
+@dataclass(frozen=True, slots=True)
+class ShoreEvent:
+    """One item the station applied, for its ``on_event`` listener.
+
+    ``kind`` is "tile" (``survey``, ``col``, ``row``, ``info`` and the PNG as received in
+    ``payload``), "pose" (``point``, and the pose JSON as received in ``payload``), "status"
+    (``status``) or "alive" (``alive``: the liveliness token appeared or went)."""
+
+    kind: str
+    vehicle: str
+    survey: str = ""
+    col: int = 0
+    row: int = 0
+    info: TileInfo | None = None
+    payload: bytes = b""
+    point: TrackPoint | None = None
+    status: dict[str, Any] | None = None
+    alive: bool | None = None
+
+
 @dataclass
 class ShoreStats:
     tiles_taken: int = 0
@@ -149,6 +173,8 @@ class ShoreStats:
     catchups_done: int = 0
     writes: int = 0
     """Files written."""
+    listener_errors: int = 0
+    """Times the ``on_event`` listener raised (told once; the station goes on)."""
 
 
 class _Via(Enum):
@@ -227,8 +253,10 @@ class ShoreStation:
         *,
         console: TextIO | None = None,
         clock: Callable[[], float] = time.monotonic,
+        on_event: Callable[[ShoreEvent], None] | None = None,
     ) -> None:
         self.settings = settings
+        self._on_event = on_event
         self.stats = ShoreStats()
         self._console = _Console(console if console is not None else sys.stderr)
         self._clock = clock
@@ -415,8 +443,19 @@ class ShoreStation:
         except BadPayload as exc:
             self._bad(item.key, str(exc))
 
+    def _tell(self, event: ShoreEvent) -> None:
+        if self._on_event is None:
+            return
+        try:
+            self._on_event(event)
+        except Exception as exc:  # a listener's bug must not stop the intake
+            self.stats.listener_errors += 1
+            if self.stats.listener_errors == 1:
+                self._console.event(f"event listener failed ({type(exc).__name__}: {exc})")
+
     def _take_liveliness(self, vehicle: str, alive: bool) -> None:
         self._state.take_liveliness(vehicle, alive)
+        self._tell(ShoreEvent("alive", vehicle, alive=alive))
         if alive:
             self.stats.arrivals += 1
             self._console.event(f"{vehicle}: boat up, catching up")
@@ -433,9 +472,12 @@ class ShoreStation:
         if what == "pose":
             self._state.take_pose(vehicle, item.payload)
             self.stats.poses += 1
+            point = self._state.vehicles[vehicle].track[-1]
+            self._tell(ShoreEvent("pose", vehicle, payload=item.payload, point=point))
         else:
             self._state.take_status(vehicle, item.payload)
             self.stats.statuses += 1
+            self._tell(ShoreEvent("status", vehicle, status=self._state.status(vehicle)))
 
     def _take_tile(self, item: _Received) -> None:
         where = parse_tile_key(item.key)
@@ -445,6 +487,13 @@ class ShoreStation:
             return  # the contract has no tile deletes; keep what we hold
         if self._state.take_tile(where, item.payload, item.attachment):
             self.stats.tiles_taken += 1
+            held = self._state.vehicles[where.vehicle].surveys[where.survey]
+            info = held.tiles[(where.col, where.row)].info
+            self._tell(
+                ShoreEvent(
+                    "tile", where.vehicle, where.survey, where.col, where.row, info, item.payload
+                )
+            )
         else:
             self.stats.tiles_stale += 1
 
@@ -591,10 +640,24 @@ def _vehicle_line(vehicle: str, held: HeldVehicle) -> str:
     return " | ".join(parts)
 
 
-def serve(settings: ShoreSettings, duration_s: float | None = None) -> int:
+def serve(
+    settings: ShoreSettings,
+    duration_s: float | None = None,
+    web: tuple[str, int] | None = None,
+    out: TextIO | None = None,
+) -> int:
     """Run a shore station until ``duration_s`` has passed or SIGINT/SIGTERM (the files are
-    then written one last time); 0. A second signal interrupts at once."""
-    station = ShoreStation(settings)
+    then written one last time); 0. A second signal interrupts at once. With ``web``
+    (host, port; port 0 = a free one), also serve the live map page there and print its
+    address as one line on ``out`` (stdout); SeamapError when it cannot be served."""
+    page = None
+    if web is not None:
+        from seamap.shore.web import WebServer
+
+        page = WebServer(web[0], web[1], settings.out_dir)
+        url = page.start()
+        print(f"web: {url}", file=out if out is not None else sys.stdout, flush=True)
+    station = ShoreStation(settings, on_event=page.on_event if page is not None else None)
 
     def on_signal(_signum: int, _frame: FrameType | None) -> None:
         if station.stopping:
@@ -611,6 +674,8 @@ def serve(settings: ShoreSettings, duration_s: float | None = None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if page is not None:
+            page.close()
     return 0
 
 
@@ -618,6 +683,7 @@ __all__ = [
     "DEFAULT_CONNECT",
     "HeldTile",
     "Mosaic",
+    "ShoreEvent",
     "ShoreSettings",
     "ShoreStation",
     "ShoreStats",

@@ -1,0 +1,439 @@
+"""The shore station's live map page (``seamap shore --web``): an aiohttp server on its own
+thread and event loop, fed by the station's ``on_event`` hook.
+
+The station's run thread hands each item it applied over with ``call_soon_threadsafe``
+and never waits; the loop keeps its own view of every vehicle (``WebView``: the latest PNG
+and ``TileInfo`` of each tile, the track, pose, status and liveliness) and pushes each
+change to the open pages as server-sent events. Routes:
+
+- ``/`` and ``/static/...``: the page (``seamap/shore/static``, plain JavaScript; nothing
+  is fetched from elsewhere);
+- ``/api/state``: the view as JSON (``WebView.snapshot``);
+- ``/api/tile/{vehicle}/{survey}/{col}/{row}.png?v=VERSION``: a tile's PNG as received;
+- ``/api/events``: server-sent events. The stream opens with a ``state`` event (the
+  snapshot) and goes on with ``tile``, ``pose``, ``status`` and ``alive`` events. Each
+  page has a bounded queue: one that falls behind loses what is queued and gets a fresh
+  ``state`` instead, and one that takes no data for ``WRITE_TIMEOUT_S`` is dropped;
+- ``/files/{vehicle}/track.geojson``, ``/files/{vehicle}/{survey}/mosaic.tif``: the
+  files the station keeps under its output folder (rewritten every few seconds).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from seamap.errors import SeamapError
+from seamap.shore.state import id_problem
+from seamap.shore.station import ShoreEvent
+from seamap.zenoh_io import TileInfo
+
+STATIC_DIR = Path(__file__).with_name("static")
+CLIENT_QUEUE = 256
+"""Events queued per page before it counts as behind (and is sent a fresh state)."""
+WRITE_TIMEOUT_S = 30.0
+KEEPALIVE_S = 15.0
+MAX_TRACK_POINTS = 20_000
+"""Track points kept per vehicle for the page; beyond it the track is thinned by half
+(the full track is in ``track.geojson``)."""
+START_TIMEOUT_S = 10.0
+
+
+def parse_web_address(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` (``[::1]:8080`` for IPv6) as (host, port); host 127.0.0.1 when not
+    given, port 0 = a free one. SeamapError saying what is wrong."""
+    host, colon, port = text.rpartition(":")
+    if not colon:
+        host = "127.0.0.1"
+    elif host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not host or any(c.isspace() or c in "[]/" for c in host):
+        raise SeamapError(f"--web {text!r}: not [HOST:]PORT (bad host)")
+    if not port.isdigit() or int(port) > 65535:
+        raise SeamapError(f"--web {text!r}: not [HOST:]PORT (port must be 0..65535)")
+    return host, int(port)
+
+
+def _finite(value: Any, depth: int = 0) -> Any:
+    """``value`` with non-finite floats as None (the page's JSON.parse refuses NaN);
+    nesting deeper than 20 is cut."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if depth > 20:
+        return None
+    if isinstance(value, dict):
+        return {str(k): _finite(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v, depth + 1) for v in value]
+    return value
+
+
+def _tile_json(survey: str, col: int, row: int, info: TileInfo) -> dict[str, Any]:
+    return {
+        "survey": survey,
+        "col": col,
+        "row": row,
+        "version": info.version,
+        "epsg": info.epsg,
+        "res_m": info.res_m,
+        "size_px": info.size_px,
+        "west": info.west,
+        "north": info.north,
+    }
+
+
+@dataclass
+class _Vehicle:
+    alive: bool | None = None
+    status: dict[str, Any] | None = None
+    pose: dict[str, Any] | None = None
+    track: list[tuple[float, float]] = field(default_factory=list)
+    track_epsg: int | None = None
+    tiles: dict[str, dict[tuple[int, int], tuple[TileInfo, bytes]]] = field(default_factory=dict)
+    """By survey, by (col, row): the latest info and PNG."""
+
+
+class WebView:
+    """What the page shows, kept on the server's loop: ``apply`` a station event, read a
+    ``snapshot`` or a tile. The display CRS (``epsg``) is the first tile's (or, before any
+    tile, the first pose's); the page draws what lies in it."""
+
+    def __init__(self) -> None:
+        self.vehicles: dict[str, _Vehicle] = {}
+        self.epsg: int | None = None
+
+    def apply(self, event: ShoreEvent) -> dict[str, Any] | None:
+        """Take ``event``; the page event it makes ({"event": kind, "data": ...}), or None
+        when it changes nothing shown."""
+        if id_problem(event.vehicle):
+            return None
+        held = self.vehicles.setdefault(event.vehicle, _Vehicle())
+        data: dict[str, Any] = {"vehicle": event.vehicle}
+        if event.kind == "tile" and event.info is not None and not id_problem(event.survey):
+            info = event.info
+            held.tiles.setdefault(event.survey, {})[(event.col, event.row)] = (info, event.payload)
+            self.epsg = self.epsg if self.epsg is not None else info.epsg
+            data.update(_tile_json(event.survey, event.col, event.row, info))
+        elif event.kind == "pose" and event.point is not None:
+            p = event.point
+            epsg = _pose_epsg(event.payload)
+            self.epsg = self.epsg if self.epsg is not None or epsg is None else epsg
+            if epsg != held.track_epsg:
+                held.track, held.track_epsg = [], epsg  # a track lies in one CRS
+            held.track.append((round(p.east, 3), round(p.north, 3)))
+            if len(held.track) > MAX_TRACK_POINTS:
+                held.track = [*held.track[:-1:2], held.track[-1]]
+            held.pose = data | {
+                "time": p.time, "lat": p.lat, "lon": p.lon, "east": p.east,
+                "north": p.north, "heading_deg": p.heading_deg, "epsg": epsg,
+            }  # fmt: skip
+            data = held.pose
+        elif event.kind == "status" and isinstance(event.status, dict):
+            held.status = _finite(event.status)
+            data["status"] = held.status
+        elif event.kind == "alive" and event.alive is not None:
+            held.alive = bool(event.alive)
+            data["alive"] = held.alive
+        else:
+            return None
+        return {"event": event.kind, "data": data}
+
+    def snapshot(self) -> dict[str, Any]:
+        """Every vehicle: alive, status, pose, track ([east, north] in ``track_epsg``) and
+        surveys (their grid and tiles: col, row, version, west, north)."""
+        vehicles = {}
+        for name, held in sorted(self.vehicles.items()):
+            surveys = {}
+            for survey, tiles in sorted(held.tiles.items()):
+                info = next(iter(tiles.values()))[0]
+                surveys[survey] = {
+                    "epsg": info.epsg,
+                    "res_m": info.res_m,
+                    "size_px": info.size_px,
+                    "tiles": [
+                        {"col": c, "row": r, "version": i.version, "west": i.west, "north": i.north}
+                        for (c, r), (i, _png) in sorted(tiles.items())
+                    ],
+                }
+            vehicles[name] = {
+                "alive": held.alive,
+                "status": held.status,
+                "pose": held.pose,
+                "track": held.track,
+                "track_epsg": held.track_epsg,
+                "surveys": surveys,
+            }
+        return {"epsg": self.epsg, "vehicles": vehicles}
+
+    def tile(self, vehicle: str, survey: str, col: int, row: int) -> tuple[TileInfo, bytes] | None:
+        held = self.vehicles.get(vehicle)
+        return held.tiles.get(survey, {}).get((col, row)) if held is not None else None
+
+
+def _pose_epsg(payload: bytes) -> int | None:
+    """The pose JSON's ``epsg``, None when it has none usable."""
+    try:
+        epsg = json.loads(payload).get("epsg")
+    except (ValueError, AttributeError):
+        return None
+    return epsg if isinstance(epsg, int) and 32601 <= epsg <= 32760 else None
+
+
+def _sse(kind: str, data: Any) -> bytes:
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False, default=str)
+    return f"event: {kind}\ndata: {text}\n\n".encode()
+
+
+_RESYNC = b""
+"""Queued for a page that fell behind: send it a fresh state."""
+_CLOSE = b"close"
+
+
+class _Page:
+    """One open event stream: its bounded queue and whether it fell behind."""
+
+    def __init__(self, bound: int) -> None:
+        self.queue: asyncio.Queue[bytes] = asyncio.Queue(bound)
+        self.behind = False
+
+    def push(self, message: bytes) -> bool:
+        """Queue ``message``; False when the page just fell behind (its queue emptied and a
+        resync queued instead)."""
+        if self.behind:
+            return True
+        try:
+            self.queue.put_nowait(message)
+            return True
+        except asyncio.QueueFull:
+            self.behind = True
+            while not self.queue.empty():
+                self.queue.get_nowait()
+            self.queue.put_nowait(_RESYNC)
+            return False
+
+    def end(self) -> None:
+        while not self.queue.empty():
+            self.queue.get_nowait()
+        self.queue.put_nowait(_CLOSE)
+
+
+@dataclass
+class WebStats:
+    events: int = 0
+    """Station events taken."""
+    pages: int = 0
+    """Event streams open now."""
+    resyncs: int = 0
+    """Times a page fell behind and was sent a fresh state instead of its queue."""
+    dropped_pages: int = 0
+    """Pages dropped after taking no data for ``WRITE_TIMEOUT_S``."""
+
+
+class WebServer:
+    """The page's server on its own thread and event loop. ``start`` (returns the page's
+    URL; SeamapError when it cannot listen), ``on_event`` (from any thread, never blocks),
+    ``close``. ``out_dir`` is the station's output folder, whose files it serves."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        out_dir: Path,
+        *,
+        client_queue: int = CLIENT_QUEUE,
+        write_timeout_s: float = WRITE_TIMEOUT_S,
+    ) -> None:
+        self.host, self.port, self.out_dir = host, port, out_dir
+        self.view = WebView()
+        self.stats = WebStats()
+        self.url = ""
+        self._client_queue = client_queue
+        self._write_timeout_s = write_timeout_s
+        self._pages: set[_Page] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._runner: web.AppRunner | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: str | None = None
+
+    # --- life cycle (the caller's thread) ---------------------------------------------------
+
+    def start(self) -> str:
+        self._thread = threading.Thread(target=self._main, name="shore-web", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(START_TIMEOUT_S):
+            raise SeamapError(f"--web {self._where()}: the page's server did not start")
+        if self._error is not None:
+            self._thread.join()
+            raise SeamapError(f"--web {self._where()}: cannot serve the page ({self._error})")
+        return self.url
+
+    def close(self) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is not None and thread is not None and thread.is_alive():
+            with contextlib.suppress(RuntimeError):  # the loop has already closed
+                loop.call_soon_threadsafe(self._shutdown)
+            thread.join(timeout=START_TIMEOUT_S)
+
+    def on_event(self, event: ShoreEvent) -> None:
+        """Hand a station event to the loop (called on the station's run thread)."""
+        loop = self._loop
+        if loop is None:
+            return
+        with contextlib.suppress(RuntimeError):  # closing
+            loop.call_soon_threadsafe(self._take, event)
+
+    def _where(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+    # --- the loop's thread --------------------------------------------------------------------
+
+    def _main(self) -> None:
+        loop = asyncio.new_event_loop()
+        try:
+            loop.run_until_complete(self._listen())
+        except OSError as exc:
+            self._error = exc.strerror or str(exc)
+        except Exception as exc:  # e.g. a host name that does not resolve
+            self._error = f"{type(exc).__name__}: {exc}"
+        if self._error is not None:
+            if self._runner is not None:
+                loop.run_until_complete(self._runner.cleanup())
+            loop.close()
+            self._ready.set()
+            return
+        self._loop = loop
+        self._ready.set()
+        try:
+            loop.run_forever()
+        finally:
+            if self._runner is not None:
+                loop.run_until_complete(self._runner.cleanup())
+            loop.close()
+
+    async def _listen(self) -> None:
+        app = web.Application()
+        app.router.add_get("/", self._index)
+        app.router.add_static("/static/", STATIC_DIR, append_version=False)
+        app.router.add_get("/api/state", self._state)
+        app.router.add_get("/api/tile/{vehicle}/{survey}/{col}/{row}.png", self._tile)
+        app.router.add_get("/api/events", self._events)
+        app.router.add_get("/files/{vehicle}/track.geojson", self._track_file)
+        app.router.add_get("/files/{vehicle}/{survey}/mosaic.tif", self._mosaic_file)
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        await self._runner.setup()
+        await web.TCPSite(self._runner, self.host, self.port).start()
+        port = self._runner.addresses[0][1]
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        self.url = f"http://{host}:{port}/"
+
+    def _shutdown(self) -> None:
+        for page in self._pages:
+            page.end()
+        assert self._loop is not None
+        # Let the streams see their end before the loop stops.
+        self._loop.call_later(0.05, self._loop.stop)
+
+    def _take(self, event: ShoreEvent) -> None:
+        self.stats.events += 1
+        try:
+            change = self.view.apply(event)
+        except Exception:  # the station hands over what it took; stay up whatever it is
+            return
+        if change is None or not self._pages:
+            return
+        message = _sse(change["event"], change["data"])
+        for page in self._pages:
+            if not page.push(message):
+                self.stats.resyncs += 1
+
+    # --- routes -------------------------------------------------------------------------------
+
+    async def _index(self, _request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+
+    async def _state(self, _request: web.Request) -> web.Response:
+        text = json.dumps(self.view.snapshot(), separators=(",", ":"), default=str)
+        return web.Response(text=text, content_type="application/json")
+
+    async def _tile(self, request: web.Request) -> web.Response:
+        match = request.match_info
+        try:
+            col, row = int(match["col"]), int(match["row"])
+        except ValueError:
+            raise web.HTTPNotFound() from None
+        held = self.view.tile(match["vehicle"], match["survey"], col, row)
+        if held is None:
+            raise web.HTTPNotFound()
+        info, png = held
+        # The URL names the version: cache it for good when it is the one held.
+        fresh = request.query.get("v") == str(info.version)
+        cache = "public, max-age=31536000, immutable" if fresh else "no-cache"
+        headers = {"Cache-Control": cache, "X-Tile-Version": str(info.version)}
+        return web.Response(body=png, content_type="image/png", headers=headers)
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        response = web.StreamResponse(
+            headers={
+                "Content-Type": "text/event-stream",
+                "Cache-Control": "no-cache",
+                "X-Accel-Buffering": "no",
+            }
+        )
+        await response.prepare(request)
+        page = _Page(self._client_queue)
+        # The snapshot and the page's registration happen in one step on the loop: no
+        # event falls between them.
+        first = _sse("state", self.view.snapshot())
+        self._pages.add(page)
+        self.stats.pages += 1
+        try:
+            message = first
+            while message != _CLOSE:
+                await asyncio.wait_for(response.write(message), self._write_timeout_s)
+                try:
+                    message = await asyncio.wait_for(page.queue.get(), KEEPALIVE_S)
+                except TimeoutError:
+                    message = b": keep-alive\n\n"
+                if message == _RESYNC:
+                    page.behind = False
+                    message = _sse("state", self.view.snapshot())
+        except TimeoutError:
+            self.stats.dropped_pages += 1
+        except (ConnectionError, asyncio.CancelledError):
+            pass  # the page went away
+        finally:
+            self._pages.discard(page)
+            self.stats.pages -= 1
+        return response
+
+    async def _track_file(self, request: web.Request) -> web.StreamResponse:
+        vehicle = request.match_info["vehicle"]
+        return self._file(Path(vehicle, "track.geojson"), f"{vehicle}-track.geojson", vehicle)
+
+    async def _mosaic_file(self, request: web.Request) -> web.StreamResponse:
+        vehicle, survey = request.match_info["vehicle"], request.match_info["survey"]
+        name = f"{vehicle}-{survey}-mosaic.tif"
+        return self._file(Path(vehicle, survey, "mosaic.tif"), name, vehicle, survey)
+
+    def _file(self, relative: Path, name: str, *ids: str) -> web.StreamResponse:
+        if any(id_problem(i) for i in ids):
+            raise web.HTTPNotFound()
+        path = self.out_dir / relative
+        if not path.is_file():
+            raise web.HTTPNotFound(text=f"{relative} is not written yet (the station writes it "
+                                   "every few seconds once it holds data)")  # fmt: skip
+        headers = {"Content-Disposition": f'attachment; filename="{name}"'}
+        return web.FileResponse(path, headers=headers)
+
+
+__all__ = ["WebServer", "WebStats", "WebView", "parse_web_address"]

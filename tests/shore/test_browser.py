@@ -1,0 +1,276 @@
+"""The live map page in a real headless Chromium (Debian's, driven by Playwright): a
+station and its page on 127.0.0.1, fed by fake boats over real zenoh sessions."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from pyproj import Proj, Transformer
+
+from tests.shore.conftest import (
+    COL0,
+    EPSG,
+    RES_M,
+    ROW0,
+    STATUS,
+    TILE_M,
+    Shore,
+    pose,
+    tile_values,
+    wait_until,
+)
+
+CHROMIUM = "/usr/bin/chromium"
+SCREENSHOT_ENV = "SEAMAP_SHORE_SCREENSHOT"
+"""When set, the page's screenshot (boats, mosaics, panel) is saved to this path."""
+BOAT1_FILL = (0xFF, 0x8C, 0x1A)  # the page's first boat colour
+
+playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+if not Path(CHROMIUM).exists():
+    pytest.skip(
+        f"{CHROMIUM} is missing (apt-get install chromium; `make test` installs it as root)",
+        allow_module_level=True,
+    )
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    profile = tempfile.mkdtemp(prefix="seamap-chromium-")
+    with playwright_api.sync_playwright() as p:
+        context = p.chromium.launch_persistent_context(
+            profile,
+            executable_path=CHROMIUM,
+            headless=True,
+            args=[
+                "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync",
+            ],
+            viewport={"width": 1200, "height": 800},
+            device_scale_factor=1,
+        )  # fmt: skip
+        try:
+            yield context
+        finally:
+            context.close()
+            shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    yield page
+    page.close()
+    assert not errors, errors
+
+
+def open_page(page: Any, shore: Shore) -> None:
+    page.goto(shore.url)
+    page.wait_for_function("() => window.seamap !== undefined")
+
+
+def show(page: Any, east: float, north: float, px_per_m: float) -> None:
+    page.evaluate(
+        "([e, n, s]) => { seamap.view.touched = true; seamap.view.setView(e, n, s); }",
+        [east, north, px_per_m],
+    )
+
+
+def screen_of(page: Any, east: float, north: float) -> tuple[float, float]:
+    p = page.evaluate("([e, n]) => seamap.view.utmToScreen(e, n)", [east, north])
+    return p["x"], p["y"]
+
+
+def pixel(page: Any, x: float, y: float) -> list[int]:
+    """The canvas's RGBA at CSS pixel (x, y)."""
+    return page.evaluate(
+        """([x, y]) => {
+            const c = document.getElementById("canvas");
+            const d = window.devicePixelRatio || 1;
+            return [...c.getContext("2d").getImageData(Math.floor(x * d), Math.floor(y * d),
+                                                         1, 1).data];
+        }""",
+        [x, y],
+    )
+
+
+def test_the_page_shows_the_boats_and_their_status(make_shore, page):
+    shore: Shore = make_shore()
+    boat1, boat2 = shore.boat("boat1"), shore.boat("boat2")
+    boat1.wait_heard()
+    boat2.wait_heard()
+    boat1.put_status(STATUS)
+    boat1.put_pose(pose(0))
+    boat1.put_tile(COL0, ROW0, tile_values(1), version=1)
+    boat2.put_tile(COL0 + 3, ROW0 + 1, tile_values(2), version=1, survey="t1")
+    boat2.put_pose(pose(0, east=500_012.0, north=4_800_004.0, heading=200.0))
+    open_page(page, shore)
+    for vehicle in ("boat1", "boat2"):
+        page.locator(f'section[data-vehicle="{vehicle}"]').wait_for()
+    boat1_panel = page.locator('section[data-vehicle="boat1"]')
+    wait_until(lambda: "42 mapped / 1 rejected / 3 skipped" in boat1_panel.inner_text(), "status")
+    text = boat1_panel.inner_text()
+    for fragment in ("live", "sonar up, mavlink down", "0.3 s", "2.0 GB", "3 / 12 (active)"):
+        assert fragment in text, text
+    assert page.locator('section[data-vehicle="boat2"] li[data-survey="t1"]').count() == 1
+    href = boat1_panel.locator('li[data-survey="s1"] a').get_attribute("href")
+    assert href == "/files/boat1/s1/mosaic.tif"
+    # Nothing but the station was asked for anything.
+    assert all(r.startswith(shore.url) for r in page.evaluate(
+        "() => performance.getEntriesByType('resource').map(e => e.name)"))  # fmt: skip
+    path = os.environ.get(SCREENSHOT_ENV)
+    if path:
+        page.evaluate("() => { seamap.view.touched = false; }")
+        page.locator("#fit").click()
+        page.wait_for_timeout(300)
+        page.screenshot(path=path)
+
+
+def test_a_tile_is_drawn_within_a_second_with_its_values_where_the_grid_puts_them(make_shore, page):
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.wait_heard()
+    boat.put_tile(COL0, ROW0, tile_values(1), version=1)
+    open_page(page, shore)
+    # 4 screen pixels per mosaic pixel, the tile and its east neighbour in view.
+    west, north = COL0 * TILE_M, (ROW0 + 1) * TILE_M
+    show(page, west + TILE_M, north - TILE_M / 2, 4 / RES_M)
+    page.wait_for_function(f"() => seamap.drawnVersion('boat1', 's1', {COL0}, {ROW0}) >= 1")
+
+    latencies = []
+    for version, (col, seed) in enumerate([(COL0, 2), (COL0 + 1, 3), (COL0, 4)], start=2):
+        values = tile_values(seed)
+        started = time.monotonic()
+        boat.put_tile(col, ROW0, values, version)
+        page.wait_for_function(
+            f"() => seamap.drawnVersion('boat1', 's1', {col}, {ROW0}) >= {version}",
+            polling="raf",
+            timeout=10_000,
+        )
+        latencies.append(time.monotonic() - started)
+        check_pixels(page, col, values)
+    print(f"tile published -> drawn on the page: {[f'{x:.3f}' for x in latencies]} s")
+    assert max(latencies) < 1.0
+
+
+def check_pixels(page: Any, col: int, values: np.ndarray) -> None:
+    """At a few pixels with data, the canvas shows the tile's value, and the pointer's
+    readout gives the pixel's centre (UTM within a pixel, and its WGS84)."""
+    to_wgs84 = Transformer.from_crs(EPSG, 4326, always_xy=True)
+    rng = np.random.default_rng(col)
+    rows, cols = np.nonzero(values)
+    for k in rng.choice(len(rows), 4, replace=False):
+        i, j = int(rows[k]), int(cols[k])  # image row (from north), column (from west)
+        east = col * TILE_M + (j + 0.5) * RES_M
+        north = (ROW0 + 1) * TILE_M - (i + 0.5) * RES_M
+        x, y = screen_of(page, east, north)
+        v = int(values[i, j])
+        assert pixel(page, x, y) == [v, v, v, 255], (i, j)
+        page.mouse.move(x, y)
+        readout = page.locator("#readout")
+        got_e = float(readout.get_attribute("data-e"))
+        got_n = float(readout.get_attribute("data-n"))
+        assert abs(got_e - east) < RES_M and abs(got_n - north) < RES_M
+        lon, lat = to_wgs84.transform(got_e, got_n)
+        text = readout.inner_text()
+        assert f"{lat:.7f}°N" in text and f"{lon:.7f}°E" in text and "UTM 31N" in text, text
+
+
+def test_inverse_transverse_mercator_matches_pyproj(make_shore, page):
+    shore: Shore = make_shore()
+    open_page(page, shore)
+    points = [
+        (500_000.0, 4_800_000.0, 31, False), (166_021.4, 1_000.0, 10, False),
+        (833_978.6, 7_000_000.0, 33, False), (200_000.0, 8_300_000.0, 35, False),
+        (700_000.0, 9_000_000.0, 56, True), (300_000.0, 1_000_000.0, 20, True),
+        (512_345.678, 6_543_210.987, 32, False),
+    ]  # fmt: skip
+    for east, north, zone, south in points:
+        epsg = (32700 if south else 32600) + zone
+        got = page.evaluate("([e, n, z, s]) => seamap.utm.toLatLon(e, n, z, s)",
+                            [east, north, zone, south])  # fmt: skip
+        lon, lat = Transformer.from_crs(epsg, 4326, always_xy=True).transform(east, north)
+        # 1e-9 degrees: 0.1 mm of latitude.
+        assert got["lat"] == pytest.approx(lat, abs=1e-9)
+        assert got["lon"] == pytest.approx(lon, abs=1e-9 / max(np.cos(np.radians(lat)), 0.1))
+        convergence = Proj(f"EPSG:{epsg}").get_factors(lon, lat).meridian_convergence
+        assert got["convergenceDeg"] == pytest.approx(convergence, abs=1e-7)
+
+
+def test_the_boat_moves_with_its_poses_and_shows_away_when_it_goes(make_shore, page):
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.wait_heard()
+    open_page(page, shore)
+    start = pose(0, east=500_010.0, north=4_800_010.0, heading=90.0)
+    show(page, 500_020.0, 4_800_010.0, 10.0)  # 10 px per metre
+    for i, heading in ((0, 90.0), (20, 90.0), (20, 0.0)):
+        p = {**pose(i, east=start["east"], north=start["north"]), "heading_deg": heading}
+        boat.put_pose(p)
+        page.wait_for_function(
+            f"() => seamap.model.vehicles.get('boat1')?.pose?.heading_deg === {heading} &&"
+            f" seamap.model.vehicles.get('boat1')?.pose?.east === {p['east']}"
+        )
+        page.wait_for_timeout(100)  # a frame
+        x, y = screen_of(page, p["east"], p["north"])
+        # The arrow: its body at the pose, its tip ahead along the heading (grid north is
+        # up; convergence here is under 0.01 degrees), nothing of it behind.
+        dx, dy = np.sin(np.radians(heading)), -np.cos(np.radians(heading))
+        assert pixel(page, x, y)[:3] == list(BOAT1_FILL)
+        assert pixel(page, x + 5 * dx, y + 5 * dy)[:3] == list(BOAT1_FILL)
+        assert pixel(page, x - 10 * dx, y - 10 * dy)[:3] != list(BOAT1_FILL)
+        if i == 20:
+            x0, y0 = screen_of(page, start["east"], start["north"])
+            assert pixel(page, x0, y0)[:3] != list(BOAT1_FILL)  # it left the start
+    section = page.locator('section[data-vehicle="boat1"]')
+    assert "away" not in section.get_attribute("class")
+    boat.close()
+    page.wait_for_selector('section[data-vehicle="boat1"].away', timeout=20_000)
+    assert "away" in section.locator(".badge").inner_text()
+
+
+def test_wheel_zooms_about_the_pointer_and_drag_pans(make_shore, page):
+    shore: Shore = make_shore()
+    open_page(page, shore)
+    page.evaluate("() => seamap.view.setView(500000, 4800000, 2)")
+    x, y = 300.0, 200.0
+    before = page.evaluate(f"() => seamap.view.screenToUtm({x}, {y})")
+    page.mouse.move(x, y)
+    page.mouse.wheel(0, -300)
+    page.wait_for_function("() => seamap.view.scale > 2")
+    after = page.evaluate(f"() => seamap.view.screenToUtm({x}, {y})")
+    assert after["e"] == pytest.approx(before["e"], abs=1e-6)
+    assert after["n"] == pytest.approx(before["n"], abs=1e-6)
+    scale = page.evaluate("() => seamap.view.scale")
+    page.mouse.down()
+    page.mouse.move(x + 100, y + 50, steps=5)
+    page.mouse.up()
+    dragged = page.evaluate(f"() => seamap.view.screenToUtm({x + 100}, {y + 50})")
+    assert dragged["e"] == pytest.approx(before["e"], abs=1e-6)  # the point followed the mouse
+    assert dragged["n"] == pytest.approx(before["n"], abs=1e-6)
+    assert page.evaluate("() => seamap.view.scale") == scale
+
+
+def test_on_a_phone_the_map_fills_the_screen_and_the_panel_folds(make_shore, browser):
+    shore: Shore = make_shore()
+    phone = browser.new_page()
+    try:
+        phone.set_viewport_size({"width": 390, "height": 800})
+        open_page(phone, shore)
+        canvas = phone.locator("#canvas").bounding_box()
+        assert canvas["width"] == 390 and canvas["height"] == 800
+        assert not phone.locator("#panel").is_visible()
+        phone.locator("#panel-toggle").click()
+        assert phone.locator("#panel").is_visible()
+    finally:
+        phone.close()
