@@ -21,8 +21,9 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install --quiet --no-deps 'oculus-python==0.0.2a1'
 	touch $(STAMP)
 
+DEMO_WEB ?= 127.0.0.1:8080
 demo: $(STAMP)
-	$(BIN)/seamap demo --out $(DEMO_OUT)
+	$(BIN)/seamap demo --out $(DEMO_OUT) --web $(DEMO_WEB)
 
 test: $(STAMP) lint typecheck pytest
 

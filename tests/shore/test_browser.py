@@ -4,17 +4,15 @@ station and its page on 127.0.0.1, fed by fake boats over real zenoh sessions.""
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from pyproj import Proj, Transformer
 
+from tests.shore import chromium
 from tests.shore.conftest import (
     COL0,
     EPSG,
@@ -28,40 +26,17 @@ from tests.shore.conftest import (
     wait_until,
 )
 
-CHROMIUM = "/usr/bin/chromium"
 SCREENSHOT_ENV = "SEAMAP_SHORE_SCREENSHOT"
 """When set, the page's screenshot (boats, mosaics, panel) is saved to this path."""
 BOAT1_FILL = (0xFF, 0x8C, 0x1A)  # the page's first boat colour
 
-playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
-if not Path(CHROMIUM).exists():
-    pytest.skip(
-        f"{CHROMIUM} is missing (apt-get install chromium; `make test` installs it as root)",
-        allow_module_level=True,
-    )
+chromium.require()
 
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
-    profile = tempfile.mkdtemp(prefix="seamap-chromium-")
-    with playwright_api.sync_playwright() as p:
-        context = p.chromium.launch_persistent_context(
-            profile,
-            executable_path=CHROMIUM,
-            headless=True,
-            args=[
-                "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                "--no-first-run", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync",
-            ],
-            viewport={"width": 1200, "height": 800},
-            device_scale_factor=1,
-        )  # fmt: skip
-        try:
-            yield context
-        finally:
-            context.close()
-            shutil.rmtree(profile, ignore_errors=True)
+    with chromium.browser() as context:
+        yield context
 
 
 @pytest.fixture
