@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from types import FrameType
 from typing import TextIO
 
@@ -36,7 +36,7 @@ import zenoh
 from seamap.config import SiteConfig, ZenohConfig
 from seamap.errors import SeamapError
 from seamap.security import insecure_listen
-from seamap.zenoh_io import ROOT, alive_key, endpoint_problem, open_session
+from seamap.zenoh_io import ROOT, alive_key, open_session, with_endpoints
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 STATUS_INTERVAL_S = 10.0
@@ -63,23 +63,9 @@ def router_settings(
         if config is not None
         else ZenohConfig(listen=[DEFAULT_LISTEN], connect=[], multicast_scouting=False)
     )
-    session = replace(
-        base,
-        mode="router",
-        listen=list(listen) if listen is not None else list(base.listen),
-        connect=list(connect) if connect is not None else list(base.connect),
-    )
+    session = with_endpoints(base, listen, connect, mode="router")
     if not session.listen:
         raise SeamapError("no listen endpoint: give --listen or [zenoh] listen")
-    for name, given, endpoints in (
-        ("listen", listen is not None, session.listen),
-        ("connect", connect is not None, session.connect),
-    ):
-        where = f"--{name}" if given else f"[zenoh] {name}"
-        for endpoint in endpoints:
-            problem = endpoint_problem(endpoint)
-            if problem is not None:
-                raise SeamapError(f"{where} {endpoint!r}: not a zenoh endpoint ({problem})")
     exposed = insecure_listen(session.listen)
     if exposed and not session.allow_insecure:
         raise SeamapError(

@@ -22,7 +22,8 @@ from __future__ import annotations
 import io
 import json
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -167,6 +168,33 @@ def endpoint_problem(endpoint: str) -> str | None:
         if not port.isdigit() or int(port) > 65535:
             return f"port {port!r} is not 0..65535"
     return None
+
+
+def with_endpoints(
+    base: ZenohConfig,
+    listen: Sequence[str] | None,
+    connect: Sequence[str] | None,
+    mode: str | None = None,
+) -> ZenohConfig:
+    """``base`` with the command line's ``--listen``, ``--connect`` (and mode) in place of
+    its own where given; SeamapError naming a malformed endpoint, by the option it came
+    from or its ``[zenoh]`` key."""
+    session = replace(
+        base,
+        mode=mode if mode is not None else base.mode,
+        listen=list(listen) if listen is not None else list(base.listen),
+        connect=list(connect) if connect is not None else list(base.connect),
+    )
+    for name, given, endpoints in (
+        ("listen", listen is not None, session.listen),
+        ("connect", connect is not None, session.connect),
+    ):
+        where = f"--{name}" if given else f"[zenoh] {name}"
+        for endpoint in endpoints:
+            problem = endpoint_problem(endpoint)
+            if problem is not None:
+                raise SeamapError(f"{where} {endpoint!r}: not a zenoh endpoint ({problem})")
+    return session
 
 
 def session_config(cfg: ZenohConfig) -> zenoh.Config:

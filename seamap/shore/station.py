@@ -28,7 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from enum import Enum
 from functools import partial
 from pathlib import Path
@@ -56,12 +56,12 @@ from seamap.zenoh_io import (
     ROOT,
     TileInfo,
     alive_key,
-    endpoint_problem,
     open_session,
     parse_tile_key,
     pose_key,
     status_key,
     tiles_selector,
+    with_endpoints,
 )
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -112,21 +112,7 @@ def shore_settings(
     ``vehicle``, else the config's ``[daemon] vehicle``, else every vehicle.
     SeamapError naming a malformed endpoint or id."""
     base = config.zenoh if config is not None else _default_session()
-    session = replace(
-        base,
-        mode=mode if mode is not None else base.mode,
-        listen=list(listen) if listen is not None else list(base.listen),
-        connect=list(connect) if connect is not None else list(base.connect),
-    )
-    for name, given, endpoints in (
-        ("listen", listen is not None, session.listen),
-        ("connect", connect is not None, session.connect),
-    ):
-        where = f"--{name}" if given else f"[zenoh] {name}"
-        for endpoint in endpoints:
-            problem = endpoint_problem(endpoint)
-            if problem is not None:
-                raise SeamapError(f"{where} {endpoint!r}: not a zenoh endpoint ({problem})")
+    session = with_endpoints(base, listen, connect, mode)
     if vehicle is None:
         vehicle = config.daemon.vehicle if config is not None else "*"
     survey = "*" if survey is None else survey

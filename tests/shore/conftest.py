@@ -13,8 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
 import pytest
 import zenoh
 
@@ -32,16 +30,14 @@ from seamap.zenoh_io import (
     tiles_selector,
 )
 from tests.ports import free_tcp_port
-from tests.test_shore import loopback_peer
+from tests.test_shore import (  # the same grid and tiles as the station's own tests
+    EPSG,
+    Tile,
+    loopback_peer,
+    tile_info,
+)
 
-EPSG = 32631
-RES_M = 0.05
-SIZE_PX = 64
-TILE_M = RES_M * SIZE_PX
-COL0, ROW0 = 156250, 1500000  # easting 500 000 m, northing 4 800 000 m
 WAIT_S = 20.0
-
-Tile = npt.NDArray[np.uint8]
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout: float = WAIT_S) -> None:
@@ -50,18 +46,6 @@ def wait_until(condition: Callable[[], bool], what: str, timeout: float = WAIT_S
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.02)
-
-
-def tile_values(seed: int) -> Tile:
-    """A tile with data (1..255) and holes (0)."""
-    rng = np.random.default_rng(seed)
-    values = rng.integers(1, 256, (SIZE_PX, SIZE_PX), dtype=np.uint8)
-    values[rng.random((SIZE_PX, SIZE_PX)) < 0.2] = 0
-    return values
-
-
-def tile_info(col: int, row: int, version: int) -> TileInfo:
-    return TileInfo(EPSG, RES_M, col * TILE_M, (row + 1) * TILE_M, SIZE_PX, version)
 
 
 def pose(i: int, east: float = 500_010.0, north: float = 4_800_010.0, heading: float = 90.0):

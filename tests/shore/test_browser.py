@@ -13,18 +13,8 @@ import pytest
 from pyproj import Proj, Transformer
 
 from tests.shore import chromium
-from tests.shore.conftest import (
-    COL0,
-    EPSG,
-    RES_M,
-    ROW0,
-    STATUS,
-    TILE_M,
-    Shore,
-    pose,
-    tile_values,
-    wait_until,
-)
+from tests.shore.conftest import STATUS, Shore, pose, wait_until
+from tests.test_shore import COL0, EPSG, RES_M, ROW0, TILE_M, tile_values
 
 SCREENSHOT_ENV = "SEAMAP_SHORE_SCREENSHOT"
 """When set, the page's screenshot (boats, mosaics, panel) is saved to this path."""

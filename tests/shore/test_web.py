@@ -7,14 +7,11 @@ from __future__ import annotations
 import http.client
 import json
 import socket
-import subprocess
-import sys
 import threading
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,17 +21,8 @@ from seamap.errors import SeamapError
 from seamap.shore.station import ShoreEvent
 from seamap.shore.web import WebView, parse_web_address
 from tests.ports import free_tcp_port
-from tests.shore.conftest import (
-    COL0,
-    ROW0,
-    STATUS,
-    WAIT_S,
-    Shore,
-    pose,
-    tile_info,
-    tile_values,
-    wait_until,
-)
+from tests.shore.conftest import STATUS, WAIT_S, Shore, pose, wait_until
+from tests.test_shore import COL0, ROW0, seamap_shore, tile_info, tile_values
 
 
 class EventReader:
@@ -273,15 +261,6 @@ def test_the_view_takes_anything_the_station_might_hand_it():
 )
 def test_web_address_forms(text, expected):
     assert parse_web_address(text) == expected
-
-
-def seamap_shore(*args: str | Path) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "seamap", "shore", *map(str, args)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
 
 
 @pytest.mark.parametrize("value", ["http", "127.0.0.1:99999", ":", "a b:80"])
