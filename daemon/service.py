@@ -75,6 +75,9 @@ log = logging.getLogger(__name__)
 RECORDER_POLL_S = 0.25
 DEFERRED_PASS_CHECK_S = 10.0
 """How often a survey-end pass deferred by a full disk looks for space again."""
+MAX_PASS_ATTEMPTS = 2
+"""Survey-end passes a survey may lose to the daemon's death before it is given up on (the
+first could be an unrelated crash; a second, the pass itself)."""
 LIVE_TILES = "live-tiles"
 """Folder (in the survey folder) where the live map's idle tiles wait; removed at the end."""
 
@@ -95,6 +98,8 @@ class Daemon:
         self.tiles_published = 0
         self._survey_dir: Path | None = None
         self._passes: dict[str, asyncio.Task[None]] = {}
+        self._running_passes: dict[str, SurveyState] = {}
+        """Surveys whose survey-end pass is mapping now."""
         self._deferred: dict[str, SurveyState] = {}
         self._sonar_resting: bool | None = None
         """Surveys whose survey-end pass waits for disk space."""
@@ -177,11 +182,15 @@ class Daemon:
             log.info("signal received", extra={"fields": {"signal": sig.name}})
             self._shutdown.set()
             return
-        # A second signal: leave now. Recordings are closed; cut passes rerun at next start.
+        # A second signal: leave now. Recordings are closed; cut passes rerun at next start
+        # (cut on purpose: not counted against them).
         log.warning(
             "second signal: leaving without waiting for the survey-end pass",
             extra={"fields": {"signal": sig.name, "pending": ",".join(self._passes) or None}},
         )
+        for state in list(self._running_passes.values()):
+            state.pass_attempts -= 1
+            self._save_state(surveys_dir(self.state_dir) / state.id, state)
         logging.shutdown()
         os._exit(0)
 
@@ -203,16 +212,33 @@ class Daemon:
         tempfile.tempdir = str(tmp)
 
     def _recover(self) -> None:
-        """Resume the survey a crash interrupted; rerun survey-end passes that were cut."""
+        """Resume the survey a crash interrupted; rerun survey-end passes that were cut,
+        unless crashes cut them ``MAX_PASS_ATTEMPTS`` times: the survey then fails, said
+        in one line, so that a pass that kills the daemon (out of memory) is not rerun at
+        every start, cutting each new survey in turn."""
         left = unfinished(self.state_dir)
         recording = [s for s in left if s.state == "recording"]
         for state in left:
             if recording and state is recording[-1]:
                 continue
+            folder = surveys_dir(self.state_dir) / state.id
             if state.state == "recording":
                 state.state, state.ended = "finishing", time.time()
                 state.reason = state.reason or "interrupted"
-                self._save_state(surveys_dir(self.state_dir) / state.id, state)
+                self._save_state(folder, state)
+            if state.pass_attempts >= MAX_PASS_ATTEMPTS:
+                state.state = "failed"
+                state.reason = (
+                    f"the survey-end pass was cut {state.pass_attempts} times by the daemon "
+                    "stopping while it ran (out of memory?); not run again here. The "
+                    f"recordings are intact: `seamap replay --survey {folder}` maps them"
+                )
+                log.error(
+                    "survey-end pass given up",
+                    extra={"fields": {"survey": state.id, "reason": state.reason}},
+                )
+                self._save_state(folder, state)
+                continue
             log.info(
                 "rerunning an interrupted survey-end pass", extra={"fields": {"survey": state.id}}
             )
@@ -442,6 +468,9 @@ class Daemon:
             self._save_state(survey_dir, state)
             return
         started = time.monotonic()
+        state.pass_attempts += 1  # taken back if a second stop signal cuts it
+        self._save_state(survey_dir, state)
+        self._running_passes[state.id] = state
         keepalive = asyncio.create_task(self._extend_stop_timeout(state.id))
         try:
             report = await asyncio.to_thread(self._replay, survey_dir, state.id)
@@ -489,6 +518,7 @@ class Daemon:
         finally:
             keepalive.cancel()
             self._pass_progress.pop(state.id, None)
+            self._running_passes.pop(state.id, None)
         shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
         self._save_state(survey_dir, state)
 

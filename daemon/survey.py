@@ -51,6 +51,10 @@ class SurveyState:
     rejected, skipped, ...), one entry per segment."""
     result: dict[str, Any] = field(default_factory=dict)
     """Summary of the survey-end pass: frames read/mapped, files written."""
+    pass_attempts: int = 0
+    """Survey-end passes started and not given up on purpose: one that neither finished nor
+    was cut by a second stop signal was cut by a crash (the kernel's out-of-memory killer:
+    the 2-hour hectare's optimisation took 21.8 GB)."""
 
 
 def surveys_dir(state_dir: str | os.PathLike[str]) -> Path:

@@ -133,6 +133,40 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
     assert not (folder / "sonar-003.oculus").exists()
     report = json.loads((folder / "report.json").read_text())
     assert [Path(p).name for p in report["inputs"]["sonar"]] == ["sonar-001.oculus"]
+    assert json.loads((folder / "survey.json").read_text())["pass_attempts"] == 1
+
+
+def test_a_pass_that_kept_killing_the_daemon_is_given_up(tmp_path: Path) -> None:
+    """A survey-end pass cut twice by the daemon's death (the kernel's out-of-memory
+    killer, say) is not rerun at every start: the survey fails with the reason, in one
+    line, and its recordings stay as they are."""
+    sim = tmp_path / "sim"
+    simulate("quadrats", 2, sim, max_pings=10)
+    config = config_file(tmp_path)
+    folder = tmp_path / "state" / "surveys" / "20260101-000000"
+    folder.mkdir(parents=True)
+    shutil.copy(sim / "sonar.oculus", folder / "sonar-001.oculus")
+    shutil.copy(sim / "nav.tlog", folder / "nav-001.tlog")
+    write_state(
+        folder,
+        SurveyState(folder.name, "boat1", state="finishing", started=1.0, pass_attempts=2),
+    )
+
+    async def main() -> tuple[int, str]:
+        daemon = DaemonProcess(config, tmp_path / "state", tmp_path / "daemon.log")
+        await daemon.start()
+        await daemon.wait_status(lambda s: True, 30)
+        code = await daemon.stop(signal.SIGTERM, 60)
+        return code, daemon.log()
+
+    code, log = asyncio.run(main())
+    assert code == 0, log
+    state = json.loads((folder / "survey.json").read_text())
+    assert state["state"] == "failed"
+    assert "cut 2 times" in state["reason"] and "seamap replay --survey" in state["reason"]
+    assert "survey-end pass given up" in log and "rerunning" not in log
+    assert not (folder / "mosaic.tif").exists()
+    assert (folder / "sonar-001.oculus").read_bytes() == (sim / "sonar.oculus").read_bytes()
 
 
 @pytest.mark.parametrize(
