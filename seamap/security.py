@@ -20,6 +20,13 @@ peer without the set is refused at the TLS handshake. The paths inside the files
 where the folders are written, or under ``--install-dir`` (for example
 ``/etc/seamap/security``: copy ``boat/`` there on the boat and ``shore-N/`` there on
 shore N).
+
+For a fleet through one ``seamap router`` (``init_fleet_security``, ``--router``) the
+router is the TLS endpoint: ``router/`` holds its certificate, every user (``boat-{id}``
+for each boat, ``shore-N``) and ``router.json5``; ``boat-{id}/`` and ``shore-N/`` are
+clients of it. Each subject is a user *and* its certificate's common name. A boat may
+only put, answer, declare queryables and be alive under its own ``seamap/{id}/**`` and
+be asked what a shore may ask; a shore has the one-boat set's rights.
 """
 
 from __future__ import annotations
@@ -232,11 +239,131 @@ def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
     }
 
 
-def shore_zenoh(folder: Path, user: str, password: str, boat: str, port: int) -> dict[str, object]:
-    """A shore's zenoh configuration: TLS to the boat at ``boat``, its certificate, its
-    user and password; its files in ``folder``."""
+_SHORE_QUERIES = ["seamap/*/survey/**", "seamap/*/pose", "seamap/*/status"]
+_SHORE_CONTROL = "seamap/*/control/survey"
+_SHORE_RULES: list[dict[str, object]] = [
+    {
+        "id": "shore-subscribe",
+        "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+        "flows": ["ingress"],
+        "permission": "allow",
+        "key_exprs": ["seamap/**"],
+    },
+    {
+        "id": "shore-query",
+        "messages": ["query"],
+        "flows": ["ingress"],
+        "permission": "allow",
+        "key_exprs": _SHORE_QUERIES,
+    },
+    {
+        "id": "shore-control",
+        "messages": ["query"],
+        "flows": ["ingress"],
+        "permission": "allow",
+        "key_exprs": [_SHORE_CONTROL],
+    },
+    {
+        "id": "fleet-to-shore",
+        "messages": ["put", "delete", "reply", "declare_queryable", "liveliness_token"],
+        "flows": ["egress"],
+        "permission": "allow",
+        "key_exprs": ["seamap/**"],
+    },
+    {
+        "id": "shore-never-publishes",
+        "messages": ["put", "delete", "declare_queryable", "liveliness_token", "reply"],
+        "flows": ["ingress"],
+        "permission": "deny",
+        "key_exprs": ["**"],
+    },
+]
+
+
+def boat_user(vehicle: str) -> str:
+    """The user name a boat logs in to the fleet's router with."""
+    return f"boat-{vehicle}"
+
+
+def _boat_rules(vehicle: str) -> list[dict[str, object]]:
+    """What the router lets boat ``vehicle`` do: publish, answer and be alive under its own
+    ``seamap/{vehicle}/**`` only, and be asked what a shore may ask. The queries' rule
+    names any vehicle because a shore asks ``seamap/*/...`` and the router checks the key
+    as asked; the router still only hands a query to the boats whose queryables match
+    it, and a boat can only declare queryables under its own key."""
+    return [
+        {
+            "id": f"{vehicle}-publishes",
+            "messages": ["put", "delete", "reply", "declare_queryable", "liveliness_token"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"seamap/{vehicle}/**"],
+        },
+        {
+            "id": f"{vehicle}-is-asked",
+            "messages": ["query"],
+            "flows": ["egress"],
+            "permission": "allow",
+            "key_exprs": [*_SHORE_QUERIES, _SHORE_CONTROL],
+        },
+    ]
+
+
+def router_zenoh(
+    folder: Path, vehicles: list[str], shore_users: list[str], port: int
+) -> dict[str, object]:
+    """The fleet router's zenoh configuration: TLS only, mutual TLS, user/password, and
+    access control (default deny; ``_boat_rules`` for each boat, ``_SHORE_RULES`` for the
+    shores, as ``systemd/zenoh-boat.json5`` for one boat); its files in ``folder``."""
+    rules = [rule for vehicle in vehicles for rule in _boat_rules(vehicle)] + _SHORE_RULES
+    # A subject names the user *and* its certificate: a password is only good with the
+    # certificate made for the same user.
+    subjects: list[dict[str, object]] = []
+    policies: list[dict[str, object]] = []
+    for vehicle in vehicles:
+        user = boat_user(vehicle)
+        subjects.append({"id": user, "usernames": [user], "cert_common_names": [user]})
+        rule_ids = [str(rule["id"]) for rule in _boat_rules(vehicle)]
+        policies.append({"id": user, "rules": rule_ids, "subjects": [user]})
+    for user in shore_users:
+        subjects.append({"id": user, "usernames": [user], "cert_common_names": [user]})
+    rule_ids = [str(rule["id"]) for rule in _SHORE_RULES]
+    policies.append({"id": "shore-stations", "rules": rule_ids, "subjects": shore_users})
     return {
-        "mode": "peer",
+        "mode": "router",
+        "listen": {"endpoints": [f"tls/0.0.0.0:{port}"]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(folder / "ca.crt"),
+                    "listen_certificate": str(folder / "router.crt"),
+                    "listen_private_key": str(folder / "router.key"),
+                    "enable_mtls": True,
+                },
+            },
+            "auth": {"usrpwd": {"dictionary_file": str(folder / "zenoh-users.txt")}},
+        },
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": subjects,
+            "policies": policies,
+        },
+    }
+
+
+def shore_zenoh(
+    folder: Path, user: str, password: str, boat: str, port: int, mode: str = "peer"
+) -> dict[str, object]:
+    """A shore's zenoh configuration: TLS to the boat at ``boat`` (or to the fleet's
+    router, ``mode`` "client"), its certificate, its user and password; its files in
+    ``folder``."""
+    return {
+        "mode": mode,
         "connect": {"endpoints": [f"tls/{_bracket(boat)}:{port}"]},
         "listen": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}},
@@ -280,6 +407,24 @@ _HEADER = (
 )
 
 
+def _check_vehicle(vehicle: str) -> None:
+    if not vehicle or "/" in vehicle or any(c in vehicle for c in "*$?# "):
+        raise SeamapError(f"--vehicle {vehicle!r}: a non-empty id without '/', '*', '$', '?', '#'")
+
+
+def _check_common(shores: int, port: int, hosts: list[str]) -> list[str]:
+    """The hosts (default: localhost and 127.0.0.1), once shores, port and hosts are
+    checked."""
+    if not 1 <= shores <= 64:
+        raise SeamapError(f"--shores {shores}: must be 1..64")
+    if not 1 <= port <= 65535:
+        raise SeamapError(f"--port {port}: must be 1..65535")
+    hosts = hosts or ["localhost", "127.0.0.1"]
+    for host in hosts:
+        _check_host(host)
+    return hosts
+
+
 def init_security(
     out: Path,
     vehicle: str,
@@ -290,15 +435,8 @@ def init_security(
 ) -> SecuritySet:
     """Write the set (module doc) into ``out`` (which must not hold one already);
     SeamapError in one line for a bad argument or an unwritable folder."""
-    if not vehicle or "/" in vehicle or any(c in vehicle for c in "*$?# "):
-        raise SeamapError(f"--vehicle {vehicle!r}: a non-empty id without '/', '*', '$', '?', '#'")
-    if not 1 <= shores <= 64:
-        raise SeamapError(f"--shores {shores}: must be 1..64")
-    if not 1 <= port <= 65535:
-        raise SeamapError(f"--port {port}: must be 1..65535")
-    hosts = hosts or ["localhost", "127.0.0.1"]
-    for host in hosts:
-        _check_host(host)
+    _check_vehicle(vehicle)
+    hosts = _check_common(shores, port, hosts)
     out = Path(out)
     if (out / "ca.key").exists():
         raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
@@ -360,6 +498,124 @@ def _write_set(
         )
         shore_folders.append(folder)
     return SecuritySet(out, boat, shore_folders, users, port)
+
+
+@dataclass(frozen=True)
+class FleetSecuritySet:
+    """What ``init_fleet_security`` wrote: the router's, each boat's (by vehicle id) and
+    each shore's folders, and every user name (boats' first)."""
+
+    out: Path
+    router: Path
+    boats: dict[str, Path]
+    shores: list[Path]
+    users: list[str]
+    port: int
+
+
+_FLEET_HEADER = (
+    "// Written by `seamap security init --router` (seamap/security.py): TLS with mutual\n"
+    "// certificates, user/password; the router's access rules: seamap/security.py.\n"
+)
+
+
+def init_fleet_security(
+    out: Path,
+    vehicles: list[str],
+    hosts: list[str],
+    shores: int = 1,
+    install_dir: Path | None = None,
+    port: int = 7447,
+) -> FleetSecuritySet:
+    """Write a fleet's set into ``out``: ``router/`` (CA certificate, the router's
+    certificate naming every host, the users file, ``router.json5`` with one policy per
+    boat and one for the shores, ``zenoh.toml``), ``boat-{vehicle}/`` and ``shore-N/``
+    (each a client of the router: CA certificate, own certificate and key, json5 with its
+    user and password, ``zenoh.toml``). SeamapError in one line for a bad argument or an
+    unwritable folder."""
+    if not vehicles:
+        raise SeamapError("--vehicle: give at least one")
+    if len(set(vehicles)) != len(vehicles):
+        raise SeamapError(f"--vehicle: given twice ({', '.join(vehicles)})")
+    for vehicle in vehicles:
+        _check_vehicle(vehicle)
+        if ":" in vehicle:  # the users file is "user:password"
+            raise SeamapError(f"--vehicle {vehicle!r}: no ':' in a vehicle id")
+    hosts = _check_common(shores, port, hosts)
+    out = Path(out)
+    if (out / "ca.key").exists():
+        raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        return _write_fleet_set(out, vehicles, hosts, shores, install_dir, port)
+    except OSError as exc:
+        raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
+
+
+def _write_fleet_set(
+    out: Path,
+    vehicles: list[str],
+    hosts: list[str],
+    shores: int,
+    install_dir: Path | None,
+    port: int,
+) -> FleetSecuritySet:
+    ca_key = _key()
+    ca = _certificate(f"seamap CA {'+'.join(vehicles)}", ca_key, None, ca_key, CA_DAYS, ca=True)
+    _write(out / "ca.crt", _pem(ca))
+    _write(out / "ca.key", _pem_key(ca_key), 0o600)
+
+    def where(folder: Path) -> Path:
+        return folder.resolve() if install_dir is None else Path(install_dir) / folder.name
+
+    router = out / "router"
+    router.mkdir(exist_ok=True)
+    router_key = _key()
+    router_cert = _certificate(
+        "seamap-router", router_key, ca, ca_key, CERT_DAYS, hosts=hosts,
+        usage=ExtendedKeyUsageOID.SERVER_AUTH,
+    )  # fmt: skip
+    _write(router / "ca.crt", _pem(ca))
+    _write(router / "router.crt", _pem(router_cert))
+    _write(router / "router.key", _pem_key(router_key), 0o600)
+    shore_users = [f"shore-{n}" for n in range(1, shores + 1)]
+    users = [boat_user(v) for v in vehicles] + shore_users
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
+    _write(router / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()), 0o600)
+    config = router_zenoh(where(router), vehicles, shore_users, port)
+    _write(router / "router.json5", _FLEET_HEADER + json.dumps(config, indent=2) + "\n")
+    _write(
+        router / "zenoh.toml",
+        "# The [zenoh] table of the router's site file (`seamap router --config`):\n"
+        + _toml_lines(where(router) / "router.json5", [f"tls/0.0.0.0:{port}"], []),
+    )
+    connect = f"tls/{_bracket(hosts[0])}:{port}"
+    folders = {}
+    for user in users:
+        folder = out / user
+        folder.mkdir(exist_ok=True)
+        key = _key()
+        cert = _certificate(user, key, ca, ca_key, CERT_DAYS, usage=ExtendedKeyUsageOID.CLIENT_AUTH)
+        _write(folder / "ca.crt", _pem(ca))
+        _write(folder / f"{user}.crt", _pem(cert))
+        _write(folder / f"{user}.key", _pem_key(key), 0o600)
+        config = shore_zenoh(where(folder), user, passwords[user], hosts[0], port, mode="client")
+        _write(folder / f"{user}.json5", _FLEET_HEADER + json.dumps(config, indent=2) + "\n", 0o600)
+        _write(
+            folder / "zenoh.toml",
+            f"# The [zenoh] table of {user}'s site file:\n"
+            + '[zenoh]\nmode = "client"\n'
+            + _toml_lines(where(folder) / f"{user}.json5", [], [connect]).removeprefix("[zenoh]\n"),
+        )
+        folders[user] = folder
+    return FleetSecuritySet(
+        out,
+        router,
+        {v: folders[boat_user(v)] for v in vehicles},
+        [folders[user] for user in shore_users],
+        users,
+        port,
+    )
 
 
 _LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
