@@ -157,11 +157,13 @@ def _check_host(host: str) -> None:
         raise SeamapError(f"--host {host!r}: not an IP address or a DNS name")
 
 
-def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
-    """The boat's zenoh configuration (the rules of ``systemd/zenoh-boat.json5``), its
-    files in ``folder``."""
+def _tls_listener(
+    mode: str, folder: Path, name: str, port: int, access_control: dict[str, object]
+) -> dict[str, object]:
+    """A zenoh configuration that listens in TLS only (mutual TLS, the set's users), as
+    ``name`` (its ``name.crt`` / ``name.key`` in ``folder``), with ``access_control``."""
     return {
-        "mode": "peer",
+        "mode": mode,
         "listen": {"endpoints": [f"tls/0.0.0.0:{port}"]},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
@@ -170,14 +172,26 @@ def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
                 "protocols": ["tls"],
                 "tls": {
                     "root_ca_certificate": str(folder / "ca.crt"),
-                    "listen_certificate": str(folder / "boat.crt"),
-                    "listen_private_key": str(folder / "boat.key"),
+                    "listen_certificate": str(folder / f"{name}.crt"),
+                    "listen_private_key": str(folder / f"{name}.key"),
                     "enable_mtls": True,
                 },
             },
             "auth": {"usrpwd": {"dictionary_file": str(folder / "zenoh-users.txt")}},
         },
-        "access_control": {
+        "access_control": access_control,
+    }
+
+
+def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
+    """The boat's zenoh configuration (the rules of ``systemd/zenoh-boat.json5``), its
+    files in ``folder``."""
+    return _tls_listener(
+        "peer",
+        folder,
+        "boat",
+        port,
+        {
             "enabled": True,
             "default_permission": "deny",
             "rules": [
@@ -236,7 +250,7 @@ def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
                 },
             ],
         },
-    }
+    )
 
 
 _SHORE_QUERIES = ["seamap/*/survey/**", "seamap/*/pose", "seamap/*/status"]
@@ -329,31 +343,14 @@ def router_zenoh(
         subjects.append({"id": user, "usernames": [user], "cert_common_names": [user]})
     rule_ids = [str(rule["id"]) for rule in _SHORE_RULES]
     policies.append({"id": "shore-stations", "rules": rule_ids, "subjects": shore_users})
-    return {
-        "mode": "router",
-        "listen": {"endpoints": [f"tls/0.0.0.0:{port}"]},
-        "connect": {"endpoints": []},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "protocols": ["tls"],
-                "tls": {
-                    "root_ca_certificate": str(folder / "ca.crt"),
-                    "listen_certificate": str(folder / "router.crt"),
-                    "listen_private_key": str(folder / "router.key"),
-                    "enable_mtls": True,
-                },
-            },
-            "auth": {"usrpwd": {"dictionary_file": str(folder / "zenoh-users.txt")}},
-        },
-        "access_control": {
-            "enabled": True,
-            "default_permission": "deny",
-            "rules": rules,
-            "subjects": subjects,
-            "policies": policies,
-        },
+    access = {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
     }
+    return _tls_listener("router", folder, "router", port, access)
 
 
 def shore_zenoh(

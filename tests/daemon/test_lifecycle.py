@@ -100,14 +100,21 @@ def test_surveys_open_and_close_on_command(tmp_path: Path) -> None:
     assert gone.returncode == 2 and gone.stderr.count("\n") == 1
 
 
-def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> None:
+def _recorded_survey(tmp_path: Path, pings: int) -> tuple[Path, Path]:
+    """A simulated survey's logs as a recorded survey folder's first segment: the folder
+    and the simulation's folder."""
     sim = tmp_path / "sim"
-    simulate("quadrats", 2, sim, max_pings=30)
-    config = config_file(tmp_path)
+    simulate("quadrats", 2, sim, max_pings=pings)
     folder = tmp_path / "state" / "surveys" / "20260101-000000"
     folder.mkdir(parents=True)
     shutil.copy(sim / "sonar.oculus", folder / "sonar-001.oculus")
     shutil.copy(sim / "nav.tlog", folder / "nav-001.tlog")
+    return folder, sim
+
+
+def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> None:
+    folder, _ = _recorded_survey(tmp_path, 30)
+    config = config_file(tmp_path)
     # A second run that died at once: its segments hold nothing and are left out.
     OculusLogWriter(folder / "sonar-002.oculus").close()
     (folder / "nav-002.tlog").touch()
@@ -140,13 +147,8 @@ def test_a_pass_that_kept_killing_the_daemon_is_given_up(tmp_path: Path) -> None
     """A survey-end pass cut twice by the daemon's death (the kernel's out-of-memory
     killer, say) is not rerun at every start: the survey fails with the reason, in one
     line, and its recordings stay as they are."""
-    sim = tmp_path / "sim"
-    simulate("quadrats", 2, sim, max_pings=10)
+    folder, sim = _recorded_survey(tmp_path, 10)
     config = config_file(tmp_path)
-    folder = tmp_path / "state" / "surveys" / "20260101-000000"
-    folder.mkdir(parents=True)
-    shutil.copy(sim / "sonar.oculus", folder / "sonar-001.oculus")
-    shutil.copy(sim / "nav.tlog", folder / "nav-001.tlog")
     write_state(
         folder,
         SurveyState(folder.name, "boat1", state="finishing", started=1.0, pass_attempts=2),
