@@ -444,54 +444,72 @@ def init_security(
         raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
 
 
+def _new_ca(out: Path, name: str) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    """The set's certificate authority, written to ``out`` (its key 0600)."""
+    ca_key = _key()
+    ca = _certificate(f"seamap CA {name}", ca_key, None, ca_key, CA_DAYS, ca=True)
+    _write(out / "ca.crt", _pem(ca))
+    _write(out / "ca.key", _pem_key(ca_key), 0o600)
+    return ca, ca_key
+
+
+def _where(folder: Path, install_dir: Path | None) -> Path:
+    """Where ``folder`` is installed: as written, or under ``install_dir``."""
+    return folder.resolve() if install_dir is None else Path(install_dir) / folder.name
+
+
+def _identity(
+    folder: Path,
+    name: str,
+    common_name: str,
+    ca: tuple[x509.Certificate, ec.EllipticCurvePrivateKey],
+    hosts: list[str] | None = None,
+) -> None:
+    """A TLS identity in ``folder``: ``ca.crt``, ``name.crt`` and ``name.key`` (0600); a
+    server's names every host, a client's has none."""
+    folder.mkdir(exist_ok=True)
+    key = _key()
+    usage = ExtendedKeyUsageOID.SERVER_AUTH if hosts else ExtendedKeyUsageOID.CLIENT_AUTH
+    cert = _certificate(common_name, key, ca[0], ca[1], CERT_DAYS, hosts=hosts, usage=usage)
+    _write(folder / "ca.crt", _pem(ca[0]))
+    _write(folder / f"{name}.crt", _pem(cert))
+    _write(folder / f"{name}.key", _pem_key(key), 0o600)
+
+
+def _users_file(folder: Path, users: list[str]) -> dict[str, str]:
+    """A fresh password for each user, written to ``folder/zenoh-users.txt`` (0600)."""
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
+    _write(folder / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()), 0o600)
+    return passwords
+
+
 def _write_set(
     out: Path, vehicle: str, hosts: list[str], shores: int, install_dir: Path | None, port: int
 ) -> SecuritySet:
-    ca_key = _key()
-    ca = _certificate(f"seamap CA {vehicle}", ca_key, None, ca_key, CA_DAYS, ca=True)
-    _write(out / "ca.crt", _pem(ca))
-    _write(out / "ca.key", _pem_key(ca_key), 0o600)
-
-    def where(folder: Path) -> Path:
-        return folder.resolve() if install_dir is None else Path(install_dir) / folder.name
-
+    ca = _new_ca(out, vehicle)
     boat = out / "boat"
-    boat.mkdir(exist_ok=True)
-    boat_key = _key()
-    boat_cert = _certificate(
-        vehicle, boat_key, ca, ca_key, CERT_DAYS, hosts=hosts,
-        usage=ExtendedKeyUsageOID.SERVER_AUTH,
-    )  # fmt: skip
-    _write(boat / "ca.crt", _pem(ca))
-    _write(boat / "boat.crt", _pem(boat_cert))
-    _write(boat / "boat.key", _pem_key(boat_key), 0o600)
+    _identity(boat, "boat", vehicle, ca, hosts)
     users = [f"shore-{n}" for n in range(1, shores + 1)]
-    passwords = {user: secrets.token_urlsafe(24) for user in users}
-    _write(boat / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()), 0o600)
+    passwords = _users_file(boat, users)
     boat_json5 = boat / "boat.json5"
-    _write(boat_json5, _HEADER + json.dumps(boat_zenoh(where(boat), users, port), indent=2) + "\n")
+    config = boat_zenoh(_where(boat, install_dir), users, port)
+    _write(boat_json5, _HEADER + json.dumps(config, indent=2) + "\n")
     _write(
         boat / "zenoh.toml",
         "# The [zenoh] table of the boat's site file (seamap.toml):\n"
-        + _toml_lines(where(boat) / "boat.json5", [f"tls/0.0.0.0:{port}"], []),
+        + _toml_lines(_where(boat, install_dir) / "boat.json5", [f"tls/0.0.0.0:{port}"], []),
     )
     shore_folders = []
     for user in users:
         folder = out / user
-        folder.mkdir(exist_ok=True)
-        key = _key()
-        cert = _certificate(user, key, ca, ca_key, CERT_DAYS, usage=ExtendedKeyUsageOID.CLIENT_AUTH)
-        _write(folder / "ca.crt", _pem(ca))
-        _write(folder / f"{user}.crt", _pem(cert))
-        _write(folder / f"{user}.key", _pem_key(key), 0o600)
-        config = shore_zenoh(where(folder), user, passwords[user], hosts[0], port)
+        _identity(folder, user, user, ca)
+        where = _where(folder, install_dir)
+        config = shore_zenoh(where, user, passwords[user], hosts[0], port)
         _write(folder / f"{user}.json5", _HEADER + json.dumps(config, indent=2) + "\n", 0o600)
         _write(
             folder / "zenoh.toml",
             f"# The [zenoh] table of {user}'s site file (`seamap shore --config`):\n"
-            + _toml_lines(
-                where(folder) / f"{user}.json5", [], [f"tls/{_bracket(hosts[0])}:{port}"]
-            ),
+            + _toml_lines(where / f"{user}.json5", [], [f"tls/{_bracket(hosts[0])}:{port}"]),
         )
         shore_folders.append(folder)
     return SecuritySet(out, boat, shore_folders, users, port)
@@ -557,52 +575,32 @@ def _write_fleet_set(
     install_dir: Path | None,
     port: int,
 ) -> FleetSecuritySet:
-    ca_key = _key()
-    ca = _certificate(f"seamap CA {'+'.join(vehicles)}", ca_key, None, ca_key, CA_DAYS, ca=True)
-    _write(out / "ca.crt", _pem(ca))
-    _write(out / "ca.key", _pem_key(ca_key), 0o600)
-
-    def where(folder: Path) -> Path:
-        return folder.resolve() if install_dir is None else Path(install_dir) / folder.name
-
+    ca = _new_ca(out, "+".join(vehicles))
     router = out / "router"
-    router.mkdir(exist_ok=True)
-    router_key = _key()
-    router_cert = _certificate(
-        "seamap-router", router_key, ca, ca_key, CERT_DAYS, hosts=hosts,
-        usage=ExtendedKeyUsageOID.SERVER_AUTH,
-    )  # fmt: skip
-    _write(router / "ca.crt", _pem(ca))
-    _write(router / "router.crt", _pem(router_cert))
-    _write(router / "router.key", _pem_key(router_key), 0o600)
+    _identity(router, "router", "seamap-router", ca, hosts)
     shore_users = [f"shore-{n}" for n in range(1, shores + 1)]
     users = [boat_user(v) for v in vehicles] + shore_users
-    passwords = {user: secrets.token_urlsafe(24) for user in users}
-    _write(router / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()), 0o600)
-    config = router_zenoh(where(router), vehicles, shore_users, port)
+    passwords = _users_file(router, users)
+    config = router_zenoh(_where(router, install_dir), vehicles, shore_users, port)
     _write(router / "router.json5", _FLEET_HEADER + json.dumps(config, indent=2) + "\n")
     _write(
         router / "zenoh.toml",
         "# The [zenoh] table of the router's site file (`seamap router --config`):\n"
-        + _toml_lines(where(router) / "router.json5", [f"tls/0.0.0.0:{port}"], []),
+        + _toml_lines(_where(router, install_dir) / "router.json5", [f"tls/0.0.0.0:{port}"], []),
     )
     connect = f"tls/{_bracket(hosts[0])}:{port}"
     folders = {}
     for user in users:
         folder = out / user
-        folder.mkdir(exist_ok=True)
-        key = _key()
-        cert = _certificate(user, key, ca, ca_key, CERT_DAYS, usage=ExtendedKeyUsageOID.CLIENT_AUTH)
-        _write(folder / "ca.crt", _pem(ca))
-        _write(folder / f"{user}.crt", _pem(cert))
-        _write(folder / f"{user}.key", _pem_key(key), 0o600)
-        config = shore_zenoh(where(folder), user, passwords[user], hosts[0], port, mode="client")
+        _identity(folder, user, user, ca)
+        where = _where(folder, install_dir)
+        config = shore_zenoh(where, user, passwords[user], hosts[0], port, mode="client")
         _write(folder / f"{user}.json5", _FLEET_HEADER + json.dumps(config, indent=2) + "\n", 0o600)
         _write(
             folder / "zenoh.toml",
             f"# The [zenoh] table of {user}'s site file:\n"
             + '[zenoh]\nmode = "client"\n'
-            + _toml_lines(where(folder) / f"{user}.json5", [], [connect]).removeprefix("[zenoh]\n"),
+            + _toml_lines(where / f"{user}.json5", [], [connect]).removeprefix("[zenoh]\n"),
         )
         folders[user] = folder
     return FleetSecuritySet(
