@@ -75,7 +75,7 @@ log = logging.getLogger(__name__)
 RECORDER_POLL_S = 0.25
 DEFERRED_PASS_CHECK_S = 10.0
 """How often a survey-end pass deferred by a full disk looks for space again."""
-MAX_PASS_ATTEMPTS = 2
+MAX_PASSES_CUT = 2
 """Survey-end passes a survey may lose to the daemon's death before it is given up on (the
 first could be an unrelated crash; a second, the pass itself)."""
 LIVE_TILES = "live-tiles"
@@ -189,7 +189,7 @@ class Daemon:
             extra={"fields": {"signal": sig.name, "pending": ",".join(self._passes) or None}},
         )
         for state in list(self._running_passes.values()):
-            state.pass_attempts -= 1
+            state.passes_cut -= 1
             self._save_state(surveys_dir(self.state_dir) / state.id, state)
         logging.shutdown()
         os._exit(0)
@@ -213,7 +213,7 @@ class Daemon:
 
     def _recover(self) -> None:
         """Resume the survey a crash interrupted; rerun survey-end passes that were cut,
-        unless crashes cut them ``MAX_PASS_ATTEMPTS`` times: the survey then fails, said
+        unless crashes cut them ``MAX_PASSES_CUT`` times: the survey then fails, said
         in one line, so that a pass that kills the daemon (out of memory) is not rerun at
         every start, cutting each new survey in turn."""
         left = unfinished(self.state_dir)
@@ -226,10 +226,10 @@ class Daemon:
                 state.state, state.ended = "finishing", time.time()
                 state.reason = state.reason or "interrupted"
                 self._save_state(folder, state)
-            if state.pass_attempts >= MAX_PASS_ATTEMPTS:
+            if state.passes_cut >= MAX_PASSES_CUT:
                 state.state = "failed"
                 state.reason = (
-                    f"the survey-end pass was cut {state.pass_attempts} times by the daemon "
+                    f"the survey-end pass was cut {state.passes_cut} times by the daemon "
                     "stopping while it ran (out of memory?); not run again here. The "
                     f"recordings are intact: `seamap replay --survey {folder}` maps them"
                 )
@@ -468,7 +468,7 @@ class Daemon:
             self._save_state(survey_dir, state)
             return
         started = time.monotonic()
-        state.pass_attempts += 1  # taken back if a second stop signal cuts it
+        state.passes_cut += 1  # until it ends here: a crash leaves it counted
         self._save_state(survey_dir, state)
         self._running_passes[state.id] = state
         keepalive = asyncio.create_task(self._extend_stop_timeout(state.id))
@@ -519,6 +519,7 @@ class Daemon:
             keepalive.cancel()
             self._pass_progress.pop(state.id, None)
             self._running_passes.pop(state.id, None)
+            state.passes_cut -= 1
         shutil.rmtree(survey_dir / LIVE_TILES, ignore_errors=True)
         self._save_state(survey_dir, state)
 

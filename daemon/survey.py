@@ -51,10 +51,11 @@ class SurveyState:
     rejected, skipped, ...), one entry per segment."""
     result: dict[str, Any] = field(default_factory=dict)
     """Summary of the survey-end pass: frames read/mapped, files written."""
-    pass_attempts: int = 0
-    """Survey-end passes started and not given up on purpose: one that neither finished nor
-    was cut by a second stop signal was cut by a crash (the kernel's out-of-memory killer:
-    the 2-hour hectare's optimisation took 21.8 GB)."""
+    passes_cut: int = 0
+    """Survey-end passes started that never ended in the daemon: counted up when one starts,
+    down when it ends in any way (done, failed, deferred) or a second stop signal cuts it;
+    what is left was cut by the daemon's death (the kernel's out-of-memory killer: the
+    2-hour hectare's optimisation took 21.8 GB)."""
 
 
 def surveys_dir(state_dir: str | os.PathLike[str]) -> Path:

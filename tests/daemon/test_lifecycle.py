@@ -118,7 +118,10 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
     # A second run that died at once: its segments hold nothing and are left out.
     OculusLogWriter(folder / "sonar-002.oculus").close()
     (folder / "nav-002.tlog").touch()
-    write_state(folder, SurveyState(folder.name, "boat1", state="finishing", started=1.0))
+    # One pass was cut by a crash already: one more may run.
+    write_state(
+        folder, SurveyState(folder.name, "boat1", state="finishing", started=1.0, passes_cut=1)
+    )
 
     async def main() -> tuple[int, str]:
         daemon = DaemonProcess(config, tmp_path / "state", tmp_path / "daemon.log")
@@ -140,7 +143,8 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
     assert not (folder / "sonar-003.oculus").exists()
     report = json.loads((folder / "report.json").read_text())
     assert [Path(p).name for p in report["inputs"]["sonar"]] == ["sonar-001.oculus"]
-    assert json.loads((folder / "survey.json").read_text())["pass_attempts"] == 1
+    # The crash before counts; this pass, which ended, does not.
+    assert json.loads((folder / "survey.json").read_text())["passes_cut"] == 1
 
 
 def test_a_pass_that_kept_killing_the_daemon_is_given_up(tmp_path: Path) -> None:
@@ -151,7 +155,7 @@ def test_a_pass_that_kept_killing_the_daemon_is_given_up(tmp_path: Path) -> None
     config = config_file(tmp_path)
     write_state(
         folder,
-        SurveyState(folder.name, "boat1", state="finishing", started=1.0, pass_attempts=2),
+        SurveyState(folder.name, "boat1", state="finishing", started=1.0, passes_cut=2),
     )
 
     async def main() -> tuple[int, str]:
