@@ -36,16 +36,14 @@ from typing import Any
 
 import numpy as np
 
-from daemon.control import request
 from drivers.oculus.logfile import iter_pings
 from seamap.config import ZenohConfig
 from seamap.errors import SeamapError
-from tools.demo import _daemon_config, _free_port
+from tools.demo import SEAMAP, _daemon_config, _free_port, _status
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
 from tools.sim.scenarios import STREAM_ONLY
 
-SEAMAP = str(Path(sys.executable).parent / "seamap")
 # Longer than any survey: the mission's end is the cut (s).
 WHOLE_SURVEY_S = 24 * 3600.0
 
@@ -98,15 +96,6 @@ def _plot(samples: list[dict[str, Any]], played_s: float, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-async def _status(state_dir: Path) -> dict[str, Any] | None:
-    try:
-        reply = await asyncio.to_thread(request, state_dir / "control.sock", "status", 5.0)
-    except SeamapError:
-        return None
-    status: dict[str, Any] | None = reply.get("status") if reply.get("ok") else None
-    return status
 
 
 async def _run(args: argparse.Namespace) -> dict[str, Any]:
