@@ -36,7 +36,7 @@ import zenoh
 from seamap.config import SiteConfig, ZenohConfig
 from seamap.errors import SeamapError
 from seamap.security import insecure_listen
-from seamap.zenoh_io import ROOT, alive_key, open_session, with_endpoints
+from seamap.zenoh_io import ROOT, alive_key, open_session, parse_alive_key, with_endpoints
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 STATUS_INTERVAL_S = 10.0
@@ -148,15 +148,15 @@ class Router:
         return text + (f"; away: {', '.join(away)}" if away else "")
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != 3 or parts[0] != ROOT or parts[2] != "alive":
+        vehicle = parse_alive_key(str(sample.key_expr))
+        if vehicle is None:
             return
         up = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
-            changed = self._alive.get(parts[1]) != up
-            self._alive[parts[1]] = up
+            changed = self._alive.get(vehicle) != up
+            self._alive[vehicle] = up
         if changed:
-            self._tell(f"vehicle {parts[1]} {'alive' if up else 'away'}")
+            self._tell(f"vehicle {vehicle} {'alive' if up else 'away'}")
 
     def _tell(self, text: str) -> None:
         with contextlib.suppress(OSError, ValueError):  # a closed console never stops it

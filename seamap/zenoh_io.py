@@ -49,6 +49,14 @@ def alive_key(vehicle: str) -> str:
     return f"{ROOT}/{vehicle}/alive"
 
 
+def parse_alive_key(key: str) -> str | None:
+    """The vehicle of a liveliness token's key, or None when ``key`` is not one."""
+    parts = key.split("/")
+    if len(parts) != 3 or parts[0] != ROOT or parts[2] != "alive":
+        return None
+    return parts[1]
+
+
 def control_key(vehicle: str) -> str:
     return f"{ROOT}/{vehicle}/control/survey"
 

@@ -57,6 +57,7 @@ from seamap.zenoh_io import (
     TileInfo,
     alive_key,
     open_session,
+    parse_alive_key,
     parse_tile_key,
     pose_key,
     status_key,
@@ -416,11 +417,12 @@ class ShoreStation:
         if item.via is _Via.CATCHUP_DONE:
             self.stats.catchups_done += 1
             return
-        parts = item.key.split("/")
         if item.via is _Via.LIVELINESS:
-            if len(parts) == 3 and parts[2] == "alive" and not id_problem(parts[1]):
-                self._take_liveliness(parts[1], item.put)
+            vehicle = parse_alive_key(item.key)
+            if vehicle is not None and not id_problem(vehicle):
+                self._take_liveliness(vehicle, item.put)
             return
+        parts = item.key.split("/")
         try:
             if len(parts) == 3 and parts[0] == ROOT and parts[2] in ("pose", "status"):
                 self._take_pose_or_status(parts[1], parts[2], item)
