@@ -183,79 +183,9 @@ def _tls_listener(
     }
 
 
-def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
-    """The boat's zenoh configuration (the rules of ``systemd/zenoh-boat.json5``), its
-    files in ``folder``."""
-    return _tls_listener(
-        "peer",
-        folder,
-        "boat",
-        port,
-        {
-            "enabled": True,
-            "default_permission": "deny",
-            "rules": [
-                {
-                    "id": "shore-subscribe",
-                    "messages": [
-                        "declare_subscriber",
-                        "declare_liveliness_subscriber",
-                        "liveliness_query",
-                    ],
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "key_exprs": ["seamap/**"],
-                },
-                {
-                    "id": "shore-query",
-                    "messages": ["query"],
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "key_exprs": ["seamap/*/survey/**", "seamap/*/pose", "seamap/*/status"],
-                },
-                {
-                    "id": "shore-control",
-                    "messages": ["query"],
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "key_exprs": ["seamap/*/control/survey"],
-                },
-                {
-                    "id": "boat-publish",
-                    "messages": ["put", "delete", "reply", "declare_queryable", "liveliness_token"],
-                    "flows": ["egress"],
-                    "permission": "allow",
-                    "key_exprs": ["seamap/**"],
-                },
-                {
-                    "id": "shore-never-publishes",
-                    "messages": ["put", "delete", "declare_queryable", "liveliness_token", "reply"],
-                    "flows": ["ingress"],
-                    "permission": "deny",
-                    "key_exprs": ["**"],
-                },
-            ],
-            "subjects": [{"id": "shores", "usernames": users}],
-            "policies": [
-                {
-                    "id": "shore-stations",
-                    "rules": [
-                        "shore-subscribe",
-                        "shore-query",
-                        "shore-control",
-                        "boat-publish",
-                        "shore-never-publishes",
-                    ],
-                    "subjects": ["shores"],
-                },
-            ],
-        },
-    )
-
-
 _SHORE_QUERIES = ["seamap/*/survey/**", "seamap/*/pose", "seamap/*/status"]
 _SHORE_CONTROL = "seamap/*/control/survey"
-_SHORE_RULES: list[dict[str, object]] = [
+_SHORE_RULES: list[dict[str, object]] = [  # the rules of systemd/zenoh-boat.json5
     {
         "id": "shore-subscribe",
         "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
@@ -278,7 +208,7 @@ _SHORE_RULES: list[dict[str, object]] = [
         "key_exprs": [_SHORE_CONTROL],
     },
     {
-        "id": "fleet-to-shore",
+        "id": "boat-publish",
         "messages": ["put", "delete", "reply", "declare_queryable", "liveliness_token"],
         "flows": ["egress"],
         "permission": "allow",
@@ -292,6 +222,25 @@ _SHORE_RULES: list[dict[str, object]] = [
         "key_exprs": ["**"],
     },
 ]
+
+
+def boat_zenoh(folder: Path, users: list[str], port: int) -> dict[str, object]:
+    """The boat's zenoh configuration (the rules of ``systemd/zenoh-boat.json5``), its
+    files in ``folder``."""
+    access = {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": _SHORE_RULES,
+        "subjects": [{"id": "shores", "usernames": users}],
+        "policies": [
+            {
+                "id": "shore-stations",
+                "rules": [str(rule["id"]) for rule in _SHORE_RULES],
+                "subjects": ["shores"],
+            },
+        ],
+    }
+    return _tls_listener("peer", folder, "boat", port, access)
 
 
 def boat_user(vehicle: str) -> str:
