@@ -51,6 +51,8 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from mapping.sparse import factor_spd, solve_spd
+
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
@@ -378,6 +380,18 @@ def relative_chi2(poses: Array, constraints: Sequence[RelativeConstraint]) -> Ar
     return _squared_norms(b)
 
 
+# What an exact prediction of closure covariances may cost (flops: about a minute here).
+EXACT_COVARIANCE_WORK = 6e10
+# Beyond it, the time around a pair whose factors its windowed covariance keeps (s), and
+# the shortest window a batch of pairs shares. The GNSS bias decorrelates in 45 s and the
+# gyro bias wanders over minutes: what lies further from both frames barely moves their
+# relative pose.
+COVARIANCE_MARGIN_S = 120.0
+COVARIANCE_WINDOW_S = 600.0
+# Right-hand sides solved at once: bounded memory (columns x unknowns x 8 bytes).
+_RHS_BYTES = 64 * 2**20
+
+
 class Fusion:
     """Builds and solves the problem for one set of frames (``times`` ascending)."""
 
@@ -656,9 +670,7 @@ class Fusion:
                     robust_priors, 1.0 / (1.0 + sq / p.cauchy_scale**2), 1.0
                 )
             residual, jac, _ = self._build(x, constraints, weights)
-            normal = (jac.T @ jac).tocsc()
-            normal = normal + sp.identity(lay.size, format="csc") * 1e-9
-            step = spla.spsolve(normal, -(jac.T @ residual))
+            step = solve_spd(jac.T @ jac, -(jac.T @ residual))
             x = x + step
             x[2 : 3 * lay.n : 3] %= 2 * math.pi
             if float(np.max(np.abs(step[: 3 * lay.n]), initial=0.0)) < p.tolerance:
@@ -686,37 +698,44 @@ class Fusion:
         )
         return solution, x
 
-    def relative_covariances(self, pairs: Sequence[tuple[int, int]]) -> Array:
+    def relative_covariances(
+        self,
+        pairs: Sequence[tuple[int, int]],
+        *,
+        max_exact_work: float = EXACT_COVARIANCE_WORK,
+        margin_s: float = COVARIANCE_MARGIN_S,
+        window_s: float = COVARIANCE_WINDOW_S,
+    ) -> Array:
         """Covariance (k, 3, 3) of the relative pose j in i (forward, starboard, yaw) for
         each pair, from the information matrix at the last solution (the linearised
-        marginal: J_rel Sigma_{ij} J_rel^T)."""
+        marginal: J_rel Sigma_{ij} J_rel^T).
+
+        Exact (from the whole problem's factor) while that costs at most
+        ``max_exact_work`` (one solve per involved pose coordinate, each as long as the
+        factor: a flop count). Beyond it (a survey of hours, frames not rigid) each batch
+        of pairs close in time gets the marginal of the sub-problem around it: the frames
+        from ``margin_s`` before the earlier frame to ``margin_s`` after the later, with
+        every factor among them and the knots and global terms they touch. Factors that
+        leave the window are left out, so this covariance is never smaller than the exact
+        one: a prediction that errs wide, for a gate. A batch's window is at most twice
+        its longest pair's, and at least ``window_s``."""
         x, _, _, jac = self._last
-        lay = self.layout
-        normal = (jac.T @ jac).tocsc() + sp.identity(lay.size, format="csc") * 1e-9
-        lu = spla.splu(normal)
-        frames, to_state = self._frame_state(x)
-        n = self._frame_layout.n
-        poses = frames[: 3 * n].reshape(n, 3)
         out = np.zeros((len(pairs), 3, 3))
         if not pairs:
             return out
-        # Columns of the frames' covariance for every pose involved, in one batch:
-        # Sigma_frames = T Sigma T^T, T the frames' Jacobian in the solved state.
-        t = sp.identity(lay.size, format="csr") if to_state is None else sp.csr_matrix(to_state)
-        involved = sorted({k for pair in pairs for k in pair})
-        where = {k: i for i, k in enumerate(involved)}
-        rows = np.concatenate([np.arange(3 * k, 3 * k + 3) for k in involved])
-        rhs = np.asarray(t[rows].toarray().T)
-        solved = lu.solve(rhs)
-        cols_all = np.asarray(t @ solved)
-        for m, (i, j) in enumerate(pairs):
-            idx = np.r_[3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
-            block = np.hstack(
-                [
-                    cols_all[idx, 3 * where[i] : 3 * where[i] + 3],
-                    cols_all[idx, 3 * where[j] : 3 * where[j] + 3],
-                ]
-            )
+        frames, to_state = self._frame_state(x)
+        n = self._frame_layout.n
+        poses = frames[: 3 * n].reshape(n, 3)
+        pair_array = np.asarray(pairs, np.int64).reshape(-1, 2)
+        lu = factor_spd(jac.T @ jac)
+        involved = np.unique(pair_array)
+        work = 3.0 * involved.size * 2.0 * float(lu.L.nnz + lu.U.nnz)
+        if to_state is not None or work <= max_exact_work:
+            t = sp.identity(jac.shape[1], format="csr") if to_state is None else to_state
+            blocks = _pose_covariance_blocks(lu, sp.csr_matrix(t), pair_array)
+        else:
+            blocks = self._windowed_blocks(jac, pair_array, margin_s, window_s)
+        for m, (i, j) in enumerate(pair_array):
             dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
             psi = poses[i, 2]
             s, c = math.sin(psi), math.cos(psi)
@@ -728,5 +747,90 @@ class Fusion:
                     [0.0, 0.0, -1.0, 0.0, 0.0, 1.0],
                 ]
             )
-            out[m] = jr @ block @ jr.T
+            out[m] = jr @ blocks[m] @ jr.T
         return out
+
+    def _windowed_blocks(
+        self, jac: sp.csr_matrix, pairs: IntArray, margin_s: float, window_s: float
+    ) -> Array:
+        """Per pair, the 6 x 6 covariance of poses i and j from sub-problems in windows of
+        time around batches of pairs (``relative_covariances``)."""
+        n = self._frame_layout.n
+        times = self.times
+        # Each row's first and last frame (rows without a frame: none).
+        jac = sp.csr_matrix(jac)
+        coo = jac.tocoo()
+        is_frame = coo.col < 3 * n
+        first = np.full(jac.shape[0], n, np.int64)
+        last = np.full(jac.shape[0], -1, np.int64)
+        np.minimum.at(first, coo.row[is_frame], coo.col[is_frame] // 3)
+        np.maximum.at(last, coo.row[is_frame], coo.col[is_frame] // 3)
+        frameless = np.flatnonzero(last < 0)
+        lo_t = np.minimum(times[pairs[:, 0]], times[pairs[:, 1]]) - margin_s
+        hi_t = np.maximum(times[pairs[:, 0]], times[pairs[:, 1]]) + margin_s
+        order = np.argsort(lo_t, kind="stable")
+        out = np.zeros((len(pairs), 6, 6))
+        k = 0
+        while k < order.size:
+            # A batch: pairs in time order while the window stays within twice the
+            # longest pair's own, and at least window_s.
+            batch = [order[k]]
+            start, end = lo_t[order[k]], hi_t[order[k]]
+            k += 1
+            while k < order.size:
+                p = order[k]
+                limit = max(window_s, 2.0 * (hi_t[p] - lo_t[p]))
+                if max(end, hi_t[p]) - start > limit:
+                    break
+                batch.append(p)
+                end = max(end, hi_t[p])
+                k += 1
+            a = int(np.searchsorted(times, start, side="left"))
+            b = int(np.searchsorted(times, end, side="right")) - 1
+            rows = np.flatnonzero((first >= a) & (last <= b) & (last >= 0))
+            cols = np.unique(jac[rows].indices)
+            inside = np.zeros(jac.shape[1], bool)
+            inside[cols] = True
+            free = jac[frameless]
+            outside = np.asarray((free[:, ~inside] != 0).sum(axis=1)).ravel()
+            rows = np.concatenate([rows, frameless[outside == 0]])
+            sub = jac[rows][:, cols]
+            # The frames' unknowns as the sub-problem's (those outside: none).
+            frame_cols = cols[cols < 3 * n]
+            t = sp.csr_matrix(
+                (np.ones(frame_cols.size), (frame_cols, np.arange(frame_cols.size))),
+                shape=(3 * n, cols.size),
+            )
+            chosen = np.asarray(batch)
+            out[chosen] = _pose_covariance_blocks(factor_spd(sub.T @ sub), t, pairs[chosen])
+        return out
+
+
+def _pose_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
+    """Per pair (i, j), the 6 x 6 covariance of poses i and j (x, y, psi each) from the
+    factor ``lu`` of the information matrix, with ``t`` the frames' unknowns (rows: 3k,
+    3k + 1, 3k + 2 for frame k) as linear in the factored problem's (columns). Solved for
+    a bounded batch of poses at a time, so memory does not grow with the survey."""
+    size = lu.shape[0]
+    involved = np.unique(pairs)
+    per_batch = max(1, _RHS_BYTES // (8 * 3 * size))
+    three = np.arange(3)
+    # Rows of t for every pose the pairs name, in one small sparse matrix.
+    t_rows = sp.csr_matrix(t[(3 * involved[:, None] + three).ravel()])
+    blocks = np.zeros((len(pairs), 6, 6))
+    pos_i = np.searchsorted(involved, pairs[:, 0])
+    pos_j = np.searchsorted(involved, pairs[:, 1])
+    for b0 in range(0, involved.size, per_batch):
+        b1 = min(b0 + per_batch, involved.size)
+        rhs = np.asarray(t_rows[3 * b0 : 3 * b1].toarray().T)
+        # Covariance of every involved pose's unknowns with the batch's (3 per pose).
+        cov = np.asarray(t_rows @ np.asarray(lu.solve(rhs)))
+        for side, pos in ((0, pos_i), (1, pos_j)):
+            m = np.flatnonzero((pos >= b0) & (pos < b1))
+            if m.size == 0:
+                continue
+            col = (3 * (pos[m] - b0))[:, None, None] + three[None, None, :]
+            for half, other in ((0, pos_i), (1, pos_j)):
+                row = (3 * other[m])[:, None, None] + three[None, :, None]
+                blocks[m, 3 * half : 3 * half + 3, 3 * side : 3 * side + 3] = cov[row, col]
+    return blocks

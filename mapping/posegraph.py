@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from mapping.sparse import solve_spd
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -179,10 +180,9 @@ def optimise(
         j_free = jac[:, free]
         normal = (j_free.T @ j_free).tocsc()
         gradient = j_free.T @ residual
-        # A whisker of damping keeps a pose with no prior and no edge from making the
-        # system singular; it is far below any real weight.
-        normal = normal + sp.identity(normal.shape[0], format="csc") * 1e-9
-        step = spla.spsolve(normal, -gradient)
+        # A whisker of damping (in solve_spd) keeps a pose with no prior and no edge from
+        # making the system singular; it is far below any real weight.
+        step = solve_spd(normal, -gradient)
         poses_flat = poses.ravel()
         poses_flat[free] += step
         poses = poses_flat.reshape(n, 3)

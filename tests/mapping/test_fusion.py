@@ -227,3 +227,107 @@ def test_a_gap_bridged_by_odometry_keeps_one_graph() -> None:
     before, after = index < 100, index >= 110
     assert _shape_error(solution.poses[before], truth[keep][before]) < 0.06
     assert _shape_error(solution.poses[after], truth[keep][after]) < 0.06
+
+
+def _with_closures(rate_hz: float, lanes: int, seed: int = 5):
+    """The lawnmower with closures from each frame of a lane, once a second, to the
+    nearest frame of the lane before (2 cm, 0.3 degrees), as the survey-end pass adds."""
+    times, truth, data, chain, initial = _survey(rate_hz, seed=seed, lanes=lanes)
+    rng = np.random.default_rng(seed)
+    lane = np.floor(times / (LANE_M / SPEED + math.pi * (SPACING_M / 2) / SPEED)).astype(int)
+    closures = []
+    for k in range(0, times.size, int(rate_hz)):
+        before = np.flatnonzero(lane == lane[k] - 1)
+        if before.size == 0:
+            continue
+        i = int(before[np.argmin(np.hypot(*(truth[before, :2] - truth[k, :2]).T))])
+        if np.hypot(*(truth[i, :2] - truth[k, :2])) > 1.2 * SPACING_M:
+            continue
+        rel = relative_pose(truth[i], truth[k])
+        closures.append(
+            RelativeConstraint(
+                i,
+                k,
+                rel.forward_m + rng.normal(0, 0.02),
+                rel.starboard_m + rng.normal(0, 0.02),
+                rel.yaw_rad + rng.normal(0, math.radians(0.3)),
+                diagonal_sqrt_info((0.02, 0.02, math.radians(0.3))),
+                robust=True,
+                kind="closure",
+            )
+        )
+    return times, truth, data, chain + closures, initial, closures
+
+
+def _dense_relative_covariances(fusion: Fusion, pairs, poses) -> np.ndarray:
+    """The relative covariances from the dense inverse of the information matrix."""
+    _, _, _, jac = fusion._last
+    sigma = np.linalg.inv((jac.T @ jac).toarray() + 1e-9 * np.eye(jac.shape[1]))
+    out = []
+    for i, j in pairs:
+        idx = np.r_[3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
+        dx, dy = poses[j, :2] - poses[i, :2]
+        s, c = math.sin(poses[i, 2]), math.cos(poses[i, 2])
+        fwd, stb = s * dx + c * dy, c * dx - s * dy
+        jr = np.array([[-s, -c, stb, s, c, 0], [-c, s, -fwd, c, -s, 0], [0, 0, -1, 0, 0, 1]], float)
+        out.append(jr @ sigma[np.ix_(idx, idx)] @ jr.T)
+    return np.array(out)
+
+
+def test_relative_covariances_are_the_dense_inverse_in_bounded_batches(monkeypatch) -> None:
+    """The closures' predicted covariances come from the sparse factor a few poses at a
+    time (here one: the batch bound forced down) and equal the dense inverse's."""
+    import mapping.fusion as fusion_module
+
+    times, _, data, constraints, initial, closures = _with_closures(2.0, 3)
+    fusion = Fusion(times, data)
+    solution, _ = fusion.solve(initial, constraints)
+    pairs = [(c.i, c.j) for c in closures]
+    assert len(pairs) >= 30
+    monkeypatch.setattr(fusion_module, "_RHS_BYTES", 1)
+    got = fusion.relative_covariances(pairs)
+    want = _dense_relative_covariances(fusion, pairs, solution.poses)
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
+
+
+def test_windowed_relative_covariances_err_wide_and_close() -> None:
+    """Past the exact solve's budget (forced here), each batch of pairs gets the marginal
+    of the sub-problem around it: never tighter than the exact covariance (it leaves
+    factors out) and close to it (within 25 % in every direction on this survey, with
+    windows much shorter than the survey)."""
+    times, _, data, constraints, initial, closures = _with_closures(2.0, 8)
+    fusion = Fusion(times, data)
+    fusion.solve(initial, constraints)
+    pairs = [(c.i, c.j) for c in closures]
+    exact = fusion.relative_covariances(pairs)
+    windowed = fusion.relative_covariances(pairs, max_exact_work=0.0, margin_s=30.0, window_s=90.0)
+    assert times[-1] - times[0] > 5 * 90.0
+    ratios = np.array(
+        [
+            np.linalg.eigvals(np.linalg.solve(e, w)).real
+            for e, w in zip(exact, windowed, strict=True)
+        ]
+    )
+    assert ratios.min() > 1.0 - 1e-6
+    assert ratios.max() < 1.25
+    # The windows left something out somewhere: the windowed path was taken.
+    assert ratios.max() > 1.0 + 1e-6
+
+
+def test_the_normal_matrix_of_a_lawnmower_factors_with_little_fill() -> None:
+    """Ordered for the symmetric structure, the factor of a survey's information matrix
+    stays a few times its size (SuperLU's default ordering filled this one 20 times over,
+    and a two-hour survey's to 7 GB a step)."""
+    from mapping.sparse import factor_spd
+
+    times, _, data, constraints, initial, _ = _with_closures(5.0, 6)
+    fusion = Fusion(times, data)
+    fusion.solve(initial, constraints)
+    _, _, _, jac = fusion._last
+    normal = (jac.T @ jac).tocsc()
+    lu = factor_spd(normal)
+    fill = (lu.L.nnz + lu.U.nnz) / normal.nnz
+    assert fill < 8.0, fill
+    rhs = np.arange(normal.shape[0], dtype=float)
+    x = lu.solve(rhs)
+    assert np.linalg.norm(normal @ x + 1e-9 * x - rhs) < 1e-8 * np.linalg.norm(rhs)
