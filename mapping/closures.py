@@ -28,6 +28,7 @@ uncertainty, measured: shading and shadows move with the view direction.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -105,24 +106,40 @@ class ClosureReport:
 
 
 def _pass_groups(candidates: Sequence[ClosureCandidate], gap_s: float) -> list[list[int]]:
-    """Single-linkage groups of candidates close in both frames' times."""
+    """Groups of candidates close in both frames' times: in order of the earlier frame's
+    time, each candidate joins the first group (in the order they began) with a member
+    less than ``gap_s`` from it in both times, else begins a group. Only members less
+    than ``gap_s`` before it can qualify, so each group keeps just those at hand (a
+    survey of hours has tens of thousands of candidates)."""
     order = sorted(range(len(candidates)), key=lambda k: candidates[k].time_i)
     groups: list[list[int]] = []
+    recent: list[deque[int]] = []  # per group, its members within gap_s of the present
+    open_groups: list[int] = []  # groups with recent members, in the order they began
     for k in order:
         c = candidates[k]
         home = None
-        for g in groups:
-            if any(
+        still_open = []
+        for g in open_groups:
+            window = recent[g]
+            while window and c.time_i - candidates[window[0]].time_i >= gap_s:
+                window.popleft()
+            if not window:
+                continue
+            still_open.append(g)
+            if home is None and any(
                 abs(candidates[m].time_i - c.time_i) < gap_s
                 and abs(candidates[m].time_j - c.time_j) < gap_s
-                for m in g
+                for m in window
             ):
                 home = g
-                break
+        open_groups = still_open
         if home is None:
-            groups.append([k])
-        else:
-            home.append(k)
+            home = len(groups)
+            groups.append([])
+            recent.append(deque())
+            open_groups.append(home)
+        groups[home].append(k)
+        recent[home].append(k)
     return groups
 
 
@@ -208,34 +225,27 @@ def select_closures(
     report.pass_pairs = len(groups)
     for group in groups:
         # Every hypothesis of the group seeds a cluster of consistent corrections.
-        seeds = [(k, h) for k in group for h in range(len(live[k].hypotheses))]
+        g_corr, g_cov, g_valid = _group_arrays(poses, live, group, corr, cov_total)
+        t_i = np.array([live[k].time_i for k in group])
+        t_j = np.array([live[k].time_j for k in group])
         clusters: list[tuple[int, float, list[tuple[int, int]]]] = []
-        for k0, h0 in seeds:
-            members: list[tuple[int, int]] = []
-            for k in group:
+        for s0, k0 in enumerate(group):
+            for h0 in range(len(live[k0].hypotheses)):
+                dt = np.maximum(np.abs(t_i - t_i[s0]), np.abs(t_j - t_j[s0]))
+                drift = (params.drift_sigma_m + params.drift_rate_mps * dt) ** 2
+                diff = g_corr - g_corr[s0, h0]
+                cov = g_cov + g_cov[s0, h0] + drift[:, None, None, None] * np.eye(2)
+                dist = _mahalanobis_2d(diff, cov)
                 # Of a candidate's hypotheses consistent with the seed, the registrar's
                 # strongest (they come best first), not the nearest: a broad, weak peak
                 # is always near in its own covariance.
-                best_h = -1
-                for h in range(len(live[k].hypotheses)):
-                    diff = corr[k][h][:2] - corr[k0][h0][:2]
-                    dt = max(
-                        abs(live[k].time_i - live[k0].time_i), abs(live[k].time_j - live[k0].time_j)
-                    )
-                    drift = (params.drift_sigma_m + params.drift_rate_mps * dt) ** 2
-                    cov = (
-                        _world_cov(poses, live[k].i, cov_total[k][h])
-                        + _world_cov(poses, live[k0].i, cov_total[k0][h0])
-                        + drift * np.eye(2)
-                    )
-                    dist = float(diff @ np.linalg.solve(cov, diff))
-                    if dist < params.consistency_chi2:
-                        best_h = h
-                        break
-                if best_h >= 0:
-                    members.append((k, best_h))
-            gate = float(np.median([d2[k][h] for k, h in members]))
-            clusters.append((len(members), gate, members))
+                consistent = g_valid & (dist < params.consistency_chi2)
+                first = np.argmax(consistent, axis=1)
+                members = [
+                    (group[m], int(first[m])) for m in np.flatnonzero(consistent.any(axis=1))
+                ]
+                gate = float(np.median([d2[k][h] for k, h in members]))
+                clusters.append((len(members), gate, members))
         inside = [cl for cl in clusters if cl[1] < params.gate_chi2]
         if not inside:
             report.rejected_gate += len(group)
@@ -289,6 +299,35 @@ def select_closures(
             {"i": float(c.i), "j": float(c.j), "d2": d2[k][h], "score": hyp.score}
         )
     return constraints
+
+
+def _group_arrays(
+    poses: Array,
+    live: Sequence[ClosureCandidate],
+    group: Sequence[int],
+    corr: list[list[Array]],
+    cov_total: list[list[Array]],
+) -> tuple[Array, Array, npt.NDArray[np.bool_]]:
+    """A group's corrections (g, h, 2), their world covariances (g, h, 2, 2) and which
+    of the (candidate, hypothesis) slots hold one (g, h)."""
+    width = max(len(live[k].hypotheses) for k in group)
+    g_corr = np.zeros((len(group), width, 2))
+    g_cov = np.tile(np.eye(2), (len(group), width, 1, 1))
+    valid = np.zeros((len(group), width), bool)
+    for m, k in enumerate(group):
+        for h in range(len(live[k].hypotheses)):
+            g_corr[m, h] = corr[k][h][:2]
+            g_cov[m, h] = _world_cov(poses, live[k].i, cov_total[k][h])
+            valid[m, h] = True
+    return g_corr, g_cov, valid
+
+
+def _mahalanobis_2d(diff: Array, cov: Array) -> Array:
+    """diff^T cov^-1 diff over the leading axes (diff (..., 2), cov (..., 2, 2))."""
+    a, b, c, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 0], cov[..., 1, 1]
+    x, y = diff[..., 0], diff[..., 1]
+    det = a * d - b * c
+    return np.asarray((d * x * x - (b + c) * x * y + a * y * y) / det, float)
 
 
 def _distinct(

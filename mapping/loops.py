@@ -28,6 +28,7 @@ from mapping.overlap import OverlapRefiner
 from mapping.samples import Ping
 
 Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,6 +107,27 @@ def footprint_overlap(
     return np.asarray(inside.mean(axis=1), np.float64)
 
 
+_CHUNK_FRAMES = 2048
+"""Earlier frames whose pairs are found at once (about 2 million pairs at 10 Hz)."""
+_OVERLAP_PAIRS = 65536
+"""Pairs whose fans are compared at once (a few tens of MB)."""
+
+
+def _shared(
+    sonar: Array, a: IntArray, b: IntArray, lit_m: tuple[float, float], half_fan_rad: float
+) -> Array:
+    """Per pair (a, b) of sonar poses, the smaller of the two fans' shares of each
+    other, a bounded slice of pairs at a time."""
+    out = np.empty(a.size)
+    for s0 in range(0, a.size, _OVERLAP_PAIRS):
+        sa, sb = sonar[a[s0 : s0 + _OVERLAP_PAIRS]], sonar[b[s0 : s0 + _OVERLAP_PAIRS]]
+        out[s0 : s0 + _OVERLAP_PAIRS] = np.minimum(
+            footprint_overlap(sa, sb, lit_m, half_fan_rad),
+            footprint_overlap(sb, sa, lit_m, half_fan_rad),
+        )
+    return out
+
+
 def find_candidates(
     times: Array,
     poses: Array,
@@ -127,26 +149,42 @@ def find_candidates(
         [sonar[:, 0] + mid * np.sin(sonar[:, 2]), sonar[:, 1] + mid * np.cos(sonar[:, 2])]
     )
     reach = 2.0 * lit_m[1] * math.sin(min(half_fan_rad, math.pi / 2))
-    pairs = cKDTree(centres).query_pairs(reach, output_type="ndarray")
-    if pairs.size == 0:
-        return []
-    a, b = pairs.min(axis=1), pairs.max(axis=1)
-    far_in_time = times[index[b]] - times[index[a]] >= params.min_gap_s
-    a, b = a[far_in_time], b[far_in_time]
-    overlap = np.minimum(
-        footprint_overlap(sonar[a], sonar[b], lit_m, half_fan_rad),
-        footprint_overlap(sonar[b], sonar[a], lit_m, half_fan_rad),
-    )
-    good = overlap >= params.min_overlap
     interval = float(np.median(np.diff(times[index]))) if index.size > 1 else 1.0
     stride = max(1, round(params.stride_s / max(interval, 1e-3)))
-    best: dict[tuple[int, int], tuple[float, int, int]] = {}
-    for ia, ib, share in zip(a[good], b[good], overlap[good], strict=True):
-        i, j = int(index[ia]), int(index[ib])
-        key = (i // stride, j // stride)
-        if key not in best or share > best[key][0]:
-            best[key] = (float(share), i, j)
-    chosen = sorted((i, j) for _, i, j in best.values())
+    tree = cKDTree(centres)
+    block = index // stride
+    found: list[IntArray] = []
+    start = 0
+    # A two-hour survey has tens of millions of pairs within reach: they are taken a
+    # chunk of earlier frames at a time, whole stride blocks in each, so that memory
+    # stays bounded and each block's best pair is final when its chunk ends.
+    while start < index.size:
+        end = min(start + _CHUNK_FRAMES, index.size)
+        while end < index.size and block[end] == block[end - 1]:
+            end += 1
+        near = cKDTree(centres[start:end]).sparse_distance_matrix(
+            tree, reach, output_type="ndarray"
+        )
+        a = near["i"].astype(np.int64) + start
+        b = near["j"].astype(np.int64)
+        apart = np.asarray(near["v"], float)
+        keep = (b > a) & (times[index[b]] - times[index[a]] >= params.min_gap_s)
+        a, b, apart = a[keep], b[keep], apart[keep]
+        share = _shared(sonar, a, b, lit_m, half_fan_rad)
+        good = share >= params.min_overlap
+        a, b, share, apart = a[good], b[good], share[good], apart[good]
+        i, j = index[a], index[b]
+        # The best pair per (i block, j block): the largest share (in steps of the fan's
+        # sample points, so often tied), then the nearest fan centres, then the earliest.
+        order = np.lexsort((j, i, apart, -share, j // stride, i // stride))
+        i, j = i[order], j[order]
+        ki, kj = i // stride, j // stride
+        first = np.ones(i.size, bool)
+        first[1:] = (ki[1:] != ki[:-1]) | (kj[1:] != kj[:-1])
+        found.append(np.column_stack([i[first], j[first]]))
+        start = end
+    pairs = np.concatenate(found) if found else np.zeros((0, 2), np.int64)
+    chosen = [(int(i), int(j)) for i, j in pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]]
     # Adjacent j-blocks of one i-block see nearly the same thing: keep one per i-block and
     # pass (a pass being a run of j's without a gap of min_gap_s).
     thinned: list[tuple[int, int]] = []

@@ -111,3 +111,48 @@ def test_a_rigid_submaps_drift_loosens_its_closures(solved) -> None:
         cov_a = np.linalg.inv(a.sqrt_info.T @ a.sqrt_info)
         cov_b = np.linalg.inv(b.sqrt_info.T @ b.sqrt_info)
         np.testing.assert_allclose(cov_b, cov_a + 2 * drift, rtol=1e-6, atol=1e-12)
+
+
+def _groups_by_scanning_every_member(candidates, gap_s):
+    """The pass groups as first defined: each candidate, in order of time_i, joins the
+    first group with any member within gap_s in both times."""
+    order = sorted(range(len(candidates)), key=lambda k: candidates[k].time_i)
+    groups: list[list[int]] = []
+    for k in order:
+        c = candidates[k]
+        home = next(
+            (
+                g
+                for g in groups
+                if any(
+                    abs(candidates[m].time_i - c.time_i) < gap_s
+                    and abs(candidates[m].time_j - c.time_j) < gap_s
+                    for m in g
+                )
+            ),
+            None,
+        )
+        if home is None:
+            groups.append([k])
+        else:
+            home.append(k)
+    return groups
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_pass_groups_keep_only_recent_members_and_group_the_same(seed) -> None:
+    """Grouping with only the members within the gap at hand (what keeps a two-hour
+    survey's tens of thousands of candidates quick) groups exactly as scanning every
+    member did: passes that interleave, touch, restart, and jitter in time."""
+    from mapping.closures import ClosureCandidate, _pass_groups
+
+    rng = np.random.default_rng(seed)
+    candidates = []
+    for _ in range(int(rng.integers(20, 200))):
+        lane_i = int(rng.integers(0, 6))
+        lane_j = lane_i + int(rng.integers(1, 4))
+        t_i = 100.0 * lane_i + rng.uniform(0, 100)
+        t_j = 100.0 * lane_j + (100 - (t_i - 100 * lane_i)) + rng.normal(0, 6)
+        candidates.append(ClosureCandidate(0, 1, float(t_i), float(t_j), ()))
+    for gap in (3.0, 8.0, 30.0):
+        assert _pass_groups(candidates, gap) == _groups_by_scanning_every_member(candidates, gap)

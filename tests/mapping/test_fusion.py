@@ -331,3 +331,26 @@ def test_the_normal_matrix_of_a_lawnmower_factors_with_little_fill() -> None:
     rhs = np.arange(normal.shape[0], dtype=float)
     x = lu.solve(rhs)
     assert np.linalg.norm(normal @ x + 1e-9 * x - rhs) < 1e-8 * np.linalg.norm(rhs)
+
+
+def test_loop_candidates_are_found_the_same_a_chunk_at_a_time(monkeypatch) -> None:
+    """Candidate pairs are found a bounded chunk of frames at a time (a two-hour survey
+    has tens of millions of pairs in reach): any chunk size gives the same pairs, one per
+    block of stride on each side, each the best of its block."""
+    import mapping.loops as loops
+    from mapping.frames import SonarMount
+
+    times, truth, *_ = _survey(5.0, lanes=4)
+    mapped = np.ones(times.size, bool)
+    lit, half = (1.0, 5.0), math.radians(65.0)
+    params = loops.LoopParams()
+    whole = loops.find_candidates(times, truth, mapped, SonarMount(), lit, half, params)
+    assert len(whole) > 50
+    for chunk, slice_pairs in ((7, 5), (64, 1000), (333, 17)):
+        monkeypatch.setattr(loops, "_CHUNK_FRAMES", chunk)
+        monkeypatch.setattr(loops, "_OVERLAP_PAIRS", slice_pairs)
+        assert loops.find_candidates(times, truth, mapped, SonarMount(), lit, half, params) == whole
+    stride = round(params.stride_s * 5.0)
+    blocks = {(i // stride, j // stride) for i, j in whole}
+    assert len(blocks) == len(whole)
+    assert all(times[j] - times[i] >= params.min_gap_s for i, j in whole)
