@@ -2,7 +2,7 @@
 
 ``read_area`` reads the file, puts the area in local metres in the frame of the UTM zone
 it lies in (``mapping.geo.LocalFrame``, anchored near the mean of its outer vertices) and
-checks it (``mapping.polygons.validate_area``).
+checks it (``planning.area.validate_area``).
 
 Area files are GeoJSON (RFC 7946: WGS84 [lon, lat]): a Polygon or MultiPolygon, bare, in a
 Feature, or in a FeatureCollection holding exactly one polygon feature (others are
@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.geo import LocalFrame
-from mapping.polygons import Area, PlanningError, Polygon, clean_ring, validate_area
+from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
 from seamap.errors import SeamapError
 
 FloatArray = npt.NDArray[np.float64]

@@ -1,4 +1,4 @@
-"""Survey plan exporters: a planned lawnmower (``mapping.planning``) as mission files and
+"""Survey plan exporters: a planned lawnmower (``planning.lawnmower``) as mission files and
 pictures.
 
 - ``qgc_plan``: a QGroundControl plan (JSON, fileType "Plan" version 1, mission version 2)
@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mapping.coverage import MAPPING_LEGS
 from mapping.geo import LocalFrame
-from mapping.survey_plan import LegKind, SurveyPlan
-from mapping.swath import Swath
+from planning.coverage import MAPPING_LEGS
+from planning.plan import LegKind, SurveyPlan
+from planning.swath import Swath
 from seamap.plan_area import SurveyArea
 
 FloatArray = npt.NDArray[np.float64]

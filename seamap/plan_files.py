@@ -1,7 +1,7 @@
 """Survey plans as files: the area in, the mission out, and a mission read back.
 
 ``plan_survey`` reads the area (``seamap.plan_area``: GeoJSON or a lat,lon list), plans the
-lawnmower (``mapping.planning``) in the survey's UTM frame (``mapping.geo.LocalFrame``) and
+lawnmower (``planning.lawnmower``) in the survey's UTM frame (``mapping.geo.LocalFrame``) and
 writes four files next to ``out`` (``seamap.plan_export``):
 
 - ``PLAN.plan``: a QGroundControl plan, which QGroundControl opens and MAVSDK imports;
@@ -21,10 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mapping.coverage import coverage
-from mapping.planning import plan_survey as plan_lawnmower
-from mapping.polygons import PlanningError
-from mapping.swath import Swath, sonar_swath
+from planning.area import PlanningError
+from planning.coverage import coverage
+from planning.lawnmower import plan_survey as plan_lawnmower
+from planning.swath import Swath, sonar_swath
 from seamap.config import SiteConfig
 from seamap.errors import SeamapError
 from seamap.plan_area import SurveyArea, located_message, read_area
@@ -47,7 +47,7 @@ swath of two lanes run in opposite directions: each strip of seabed is seen twic
 either side, which gives the loop-closure registration between lanes (``[mapping]
 loop_closures``) a band half a swath wide to match in, leaves room for the autopilot's
 cross-track error and crabbing, and maps the edges of concave areas and the water round
-keep-outs (``mapping.planning``). With the default sonar settings (5 m range, low
+keep-outs (``planning.lawnmower``). With the default sonar settings (5 m range, low
 frequency, 15 degrees tilt, 1 m altitude) it gives about 4.1 m between lanes, the
 spacing the simulator's scenarios use."""
 
@@ -68,7 +68,7 @@ class PlanMission:
 
 
 def swath_from_config(config: SiteConfig) -> Swath:
-    """The usable swath of the configured sonar (``mapping.swath.sonar_swath``)."""
+    """The usable swath of the configured sonar (``planning.swath.sonar_swath``)."""
     sonar = config.sonar
     return sonar_swath(
         range_m=sonar.range_m,

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from mapping.geo import LocalFrame
-from mapping.planning import (
+from planning import (
     Area,
     LegKind,
     Polygon,
@@ -77,7 +77,7 @@ def grid_inside(area: Area, step: float = 0.5) -> np.ndarray:
 
 
 def in_swath(plan: SurveyPlan, points: np.ndarray) -> np.ndarray:
-    """Restates the coverage model independently of mapping.planning.swept: a point is
+    """Restates the coverage model independently of planning.lawnmower.swept: a point is
     mapped when it lies within the half swath of a mapping leg (lane, transit, detour),
     inside the leg's extent, or within the half swath of a waypoint where the boat turns
     from one mapping leg into the next."""

@@ -3,7 +3,7 @@
 Frames and units: across-track offsets are metres to starboard of the GPS antenna's track,
 along-track distances metres ahead of the antenna; angles are degrees. The footprint
 follows ``mapping.preprocess`` (what a frame keeps) and ``mapping.polar`` (slant range and
-bearing of a seabed point); survey planning (``mapping.planning``) spaces its lanes by it.
+bearing of a seabed point); survey planning (``planning.lawnmower``) spaces its lanes by it.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapping.polar import ground_to_polar
-from mapping.polygons import PlanningError
 from mapping.preprocess import PreprocessParams, lit_min_range
+from planning.area import PlanningError
 
 MIN_LOOK_M = 1.0
 """A seabed point is in the usable swath when the boat sees it over at least this much of

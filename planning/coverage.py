@@ -1,10 +1,10 @@
 """How much of the survey area a planned path maps: the swath swept by its mapping legs.
 
-Coverage model: the sonar's usable swath (``mapping.swath.sonar_swath``) is a band
+Coverage model: the sonar's usable swath (``planning.swath.sonar_swath``) is a band
 ``half_width_m`` each side of every leg the boat drives straight while mapping (lanes,
 transits, detours; not the turns between lanes), from the leg's start to its end, plus a
 disc of that radius at each waypoint between two mapping legs, where the boat turns and the
-fan sweeps round. What this means for a lawnmower is in ``mapping.planning``'s module doc.
+fan sweeps round. What this means for a lawnmower is in ``planning.lawnmower``'s module doc.
 Positions are metres east/north in the survey's local grid frame; areas square metres.
 """
 
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from mapping.polygons import EPS_M, Area
-from mapping.survey_plan import Leg, LegKind, SurveyPlan
+from planning.area import EPS_M, Area
+from planning.plan import Leg, LegKind, SurveyPlan
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]

@@ -4,8 +4,8 @@ convex hulls.
 Frames and units: vertices are metres east/north in the survey's local grid frame
 (``mapping.geo.LocalFrame``); areas are square metres. Rings are (n, 2) arrays, not closed
 (the first vertex is not repeated). ``PlanningError``, the one error of survey planning,
-is defined here, where an area is first found unusable; ``mapping.swath`` and
-``mapping.planning`` raise it too.
+is defined here, where an area is first found unusable; ``planning.swath`` and
+``planning.lawnmower`` raise it too.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ runs through a hull and round its outline instead.
 
 Frames and units: metres east/north in the survey's local grid frame; hulls are
 counter-clockwise (n, 2) rings. Why convex hulls, and what they give away, is in
-``mapping.planning``'s module doc.
+``planning.lawnmower``'s module doc.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from mapping.polygons import EPS_M, Point, convex_hull
+from planning.area import EPS_M, Point, convex_hull
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -24,7 +24,7 @@ Carreras 2013, doi:10.1016/j.robot.2013.09.004) for a boat that must not enter k
   lane line (a *transit*): the outside of the area is not a keep-out (lead-ins and turns lie
   there anyway); draw what must be avoided as holes.
 
-Coverage model (``mapping.coverage``): the sonar's usable swath (``sonar_swath``) is a band
+Coverage model (``planning.coverage``): the sonar's usable swath (``sonar_swath``) is a band
 ``half_width_m`` each side of every leg the boat drives straight while mapping, plus a disc
 of that radius at each waypoint between two mapping legs. With a side overlap of at least
 50% every seabed point is within the swath of two lanes run in opposite directions, and the
@@ -34,11 +34,11 @@ closer than about twice the clearance (one hull takes in both), is not driven; t
 estimate counts it as not covered. Draw such holes convex, or as one hole.
 
 This module lays the lanes over the area and routes the path; what it builds on lives
-beside it: ``mapping.polygons`` (the area, its validation, convex hulls),
-``mapping.keepouts`` (keep-out hulls and the way round them), ``mapping.swath`` (the sonar's
-usable swath), ``mapping.survey_plan`` (the planned path, its length and duration) and
-``mapping.coverage`` (the coverage estimate). Their public names are importable from here
-too, so ``mapping.planning`` is the one import for survey planning.
+beside it: ``planning.area`` (the area, its validation, convex hulls),
+``planning.keepouts`` (keep-out hulls and the way round them), ``planning.swath`` (the sonar's
+usable swath), ``planning.plan`` (the planned path, its length and duration) and
+``planning.coverage`` (the coverage estimate). Their public names are importable from here
+too, so ``planning.lawnmower`` is the one import for survey planning.
 """
 
 from __future__ import annotations
@@ -49,9 +49,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from mapping.coverage import MAPPING_LEGS, Coverage, coverage, swept
-from mapping.keepouts import around_hull, clip_to_hull, keepout_hulls
-from mapping.polygons import (
+from planning.area import (
     EPS_M,
     Area,
     PlanningError,
@@ -62,8 +60,10 @@ from mapping.polygons import (
     ring_area,
     validate_area,
 )
-from mapping.survey_plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
-from mapping.swath import MIN_LOOK_M, Swath, sonar_swath
+from planning.coverage import MAPPING_LEGS, Coverage, coverage, swept
+from planning.keepouts import around_hull, clip_to_hull, keepout_hulls
+from planning.plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
+from planning.swath import MIN_LOOK_M, Swath, sonar_swath
 
 __all__ = [
     "ENTRY_CORNERS",

@@ -3,7 +3,7 @@ and duration.
 
 Frames and units: positions are metres east/north in the survey's local grid frame;
 bearings are radians clockwise from grid north; durations are seconds. How the legs are
-laid out is ``mapping.planning``'s job.
+laid out is ``planning.lawnmower``'s job.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from enum import StrEnum
 import numpy as np
 import numpy.typing as npt
 
-from mapping.polygons import Point
+from planning.area import Point
 
 FloatArray = npt.NDArray[np.float64]
 
