@@ -17,5 +17,51 @@ mission files.
 The public names of all six are importable from here.
 """
 
-from planning.lawnmower import *  # noqa: F403
-from planning.lawnmower import __all__ as __all__
+from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
+from planning.coverage import MAPPING_LEGS, Coverage, coverage, swath_cover
+from planning.keepouts import Keepouts
+from planning.lawnmower import (
+    ENTRY_CORNERS,
+    LOOP_MIN_M2,
+    MAX_LANES,
+    MIN_RUN_M,
+    area_width,
+    candidate_bearings,
+    choose_bearing,
+    lane_offsets,
+    plan_path,
+    plan_survey,
+)
+from planning.plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
+from planning.swath import MIN_LOOK_M, Swath, sonar_swath
+
+__all__ = [
+    "ENTRY_CORNERS",
+    "LOOP_MIN_M2",
+    "MAPPING_LEGS",
+    "MAX_LANES",
+    "MIN_LOOK_M",
+    "MIN_RUN_M",
+    "TURN_RATE_RAD_S",
+    "Area",
+    "Coverage",
+    "Keepouts",
+    "Leg",
+    "LegKind",
+    "PlanningError",
+    "Polygon",
+    "Run",
+    "SurveyPlan",
+    "Swath",
+    "area_width",
+    "candidate_bearings",
+    "choose_bearing",
+    "clean_ring",
+    "coverage",
+    "lane_offsets",
+    "plan_path",
+    "plan_survey",
+    "sonar_swath",
+    "swath_cover",
+    "validate_area",
+]

@@ -1,19 +1,22 @@
-"""The survey area as polygons in local metres: its types, ring measures, validation and
-convex hulls.
+"""The survey area as polygons in local metres: its types and its validation.
 
 Frames and units: vertices are metres east/north in the survey's local grid frame
 (``mapping.geo.LocalFrame``); areas are square metres. Rings are (n, 2) arrays, not closed
-(the first vertex is not repeated). ``PlanningError``, the one error of survey planning,
-is defined here, where an area is first found unusable; ``planning.swath`` and
-``planning.lawnmower`` raise it too.
+(the first vertex is not repeated). ``Area.geometry`` is the area as one shapely geometry,
+what the lanes and the swath are cut with. ``PlanningError``, the one error of survey
+planning, is defined here, where an area is first found unusable; the rest of
+``planning`` raises it too.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
+import shapely
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -47,11 +50,16 @@ class Area:
 
     polygons: tuple[Polygon, ...]
 
+    @cached_property
+    def geometry(self) -> shapely.Geometry:
+        """The area as one shapely (Multi)Polygon (of a valid area: ``validate_area``)."""
+        return shapely.union_all(
+            [shapely.Polygon(p.outer, [h for h in p.holes]) for p in self.polygons]
+        )
+
     @property
     def area_m2(self) -> float:
-        return sum(
-            abs(ring_area(p.outer)) - sum(abs(ring_area(h)) for h in p.holes) for p in self.polygons
-        )
+        return float(shapely.area(self.geometry))
 
     @property
     def holes(self) -> list[FloatArray]:
@@ -70,22 +78,8 @@ class Area:
 
     def contains(self, east: FloatArray, north: FloatArray) -> BoolArray:
         """Which points lie inside the area (inside an outer ring, outside its holes)."""
-        inside = np.zeros(np.shape(east), bool)
-        for p in self.polygons:
-            here = _in_ring(p.outer, east, north)
-            for h in p.holes:
-                here &= ~_in_ring(h, east, north)
-            inside |= here
+        inside: BoolArray = shapely.contains_xy(self.geometry, east, north)
         return inside
-
-
-# --- rings ---
-
-
-def ring_area(ring: FloatArray) -> float:
-    """Signed area (m², counter-clockwise positive) of a ring (shoelace)."""
-    x, y = ring[:, 0], ring[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
 def clean_ring(points: npt.ArrayLike) -> FloatArray:
@@ -99,84 +93,34 @@ def clean_ring(points: npt.ArrayLike) -> FloatArray:
     return ring
 
 
-def _in_ring(ring: FloatArray, east: FloatArray, north: FloatArray) -> BoolArray:
-    """Even-odd point-in-ring test, vectorised over the points."""
-    inside = np.zeros(np.shape(east), bool)
-    x2, y2 = ring[-1]
-    for x1, y1 in ring:
-        crosses = (y1 > north) != (y2 > north)
-        # A near-horizontal edge overflows where it is not crossed (and not used).
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            x_at = x1 + (north - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= crosses & (east < x_at)
-        x2, y2 = x1, y1
-    return inside
+# GEOS's validity reasons end with the place, e.g. "Self-intersection[12.5 3]".
+_REASON = re.compile(r"^(?P<what>.*)\[(?P<east>\S+) (?P<north>\S+)\]$")
 
 
-def _edges_intersect(a: FloatArray, b: FloatArray, c: FloatArray, d: FloatArray) -> BoolArray:
-    """Whether segments a-b and c-d (broadcast arrays of points) meet, touching included."""
-
-    def orient(p: FloatArray, q: FloatArray, r: FloatArray) -> FloatArray:
-        v = (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
-            r[..., 0] - p[..., 0]
-        )
-        scale = np.hypot(*(q - p).T).T * np.hypot(*(r - p).T).T
-        return np.where(np.abs(v) <= 1e-12 * np.maximum(scale, 1e-30), 0.0, np.sign(v))
-
-    def on(p: FloatArray, q: FloatArray, r: FloatArray) -> BoolArray:
-        """r within the bounding box of p-q (used when the three are collinear)."""
-        return (
-            (np.minimum(p[..., 0], q[..., 0]) - 1e-9 <= r[..., 0])
-            & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]) + 1e-9)
-            & (np.minimum(p[..., 1], q[..., 1]) - 1e-9 <= r[..., 1])
-            & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1]) + 1e-9)
-        )
-
-    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
-    proper = (o1 * o2 < 0) & (o3 * o4 < 0)
-    touch = (
-        ((o1 == 0) & on(a, b, c))
-        | ((o2 == 0) & on(a, b, d))
-        | ((o3 == 0) & on(c, d, a))
-        | ((o4 == 0) & on(c, d, b))
-    )
-    result: BoolArray = proper | touch
-    return result
-
-
-def _first_crossing(ring_a: FloatArray, ring_b: FloatArray | None) -> tuple[int, int] | None:
-    """Indices (i, j) of an edge of ring_a meeting an edge of ring_b, or of two
-    non-adjacent edges of ring_a meeting each other when ring_b is None."""
-    a0, a1 = ring_a, np.roll(ring_a, -1, axis=0)
-    b0, b1 = (a0, a1) if ring_b is None else (ring_b, np.roll(ring_b, -1, axis=0))
-    n, m = len(a0), len(b0)
-    for start in range(0, n, 256):  # rows in chunks keep the n x m arrays small
-        rows = slice(start, min(start + 256, n))
-        hit = _edges_intersect(a0[rows, None, :], a1[rows, None, :], b0[None, :, :], b1[None, :, :])
-        if ring_b is None:
-            i = np.arange(start, rows.stop)[:, None]
-            j = np.arange(m)[None, :]
-            adjacent = (j <= i + 1) | ((i == 0) & (j == n - 1))
-            hit &= ~adjacent
-        found = np.argwhere(hit)
-        if len(found):
-            return int(found[0, 0]) + start, int(found[0, 1])
-    if ring_b is None:
-        # A spike: two adjacent edges folding back onto each other.
-        e = a1 - a0
-        nxt = np.roll(e, -1, axis=0)
-        cross = e[:, 0] * nxt[:, 1] - e[:, 1] * nxt[:, 0]
-        dot = np.einsum("ij,ij->i", e, nxt)
-        scale = np.hypot(*e.T) * np.hypot(*nxt.T)
-        fold = np.flatnonzero((np.abs(cross) <= 1e-12 * scale) & (dot < 0))
-        if len(fold):
-            return int(fold[0]), (int(fold[0]) + 1) % n
-    return None
+def _self_crossing(ring: FloatArray) -> tuple[int, int, Point] | None:
+    """Where a ring crosses or touches itself (GEOS's ``is_valid_reason``): the 0-based
+    indices of two edges there (non-adjacent where they exist; edge i runs from vertex i
+    to vertex i + 1) and the place; None if the ring is simple."""
+    reason = shapely.is_valid_reason(shapely.Polygon(ring))
+    found = _REASON.match(reason)
+    if reason == "Valid Geometry" or found is None:
+        return None
+    where = (float(found["east"]), float(found["north"]))
+    edges = shapely.linestrings(np.stack([ring, np.roll(ring, -1, axis=0)], axis=1))
+    scale = max(1.0, float(np.abs(ring).max()))
+    near = np.flatnonzero(shapely.distance(edges, shapely.Point(where)) <= 1e-9 * scale)
+    n = len(ring)
+    first = int(near[0]) if len(near) else 0
+    others = [int(j) for j in near[1:] if (j - first) % n not in (1, n - 1)]
+    other = others[0] if others else (first + 1) % n
+    return first, other, where
 
 
 def validate_area(area: Area) -> None:
-    """Raise PlanningError unless every ring has 3+ points and an area, does not cross
-    itself, and every hole lies inside its polygon without touching another ring."""
+    """Raise PlanningError unless every ring has 3+ points and an area and does not cross
+    itself, and every hole lies inside its outer ring without touching another ring. The
+    message names the ring and what is wrong with it; ``where`` is the place when GEOS
+    (``shapely.is_valid_reason``) or the overlap found it."""
     if not area.polygons:
         raise PlanningError("no polygon")
     for k, poly in enumerate(area.polygons):
@@ -189,47 +133,35 @@ def validate_area(area: Area) -> None:
                 raise PlanningError(f"{label} has fewer than 3 distinct points ({len(ring)})")
             if not np.all(np.isfinite(ring)):
                 raise PlanningError(f"{label} has a coordinate that is not a number")
-            if abs(ring_area(ring)) < 1e-6:
+            # The hull, not the ring: a figure-of-eight's two lobes cancel in the ring's
+            # signed area, and it should be told that it crosses itself.
+            if shapely.area(shapely.convex_hull(shapely.multipoints(ring))) < 1e-6:
                 raise PlanningError(f"{label} has no area (its points are in a line)")
-            crossing = _first_crossing(ring, None)
+            crossing = _self_crossing(ring)
             if crossing is not None:
-                i, j = crossing
-                where = (float(ring[i, 0]), float(ring[i, 1]))
-                raise PlanningError(f"{label} crosses itself (edges {i + 1} and {j + 1})", where)
-        for i, hole in enumerate(poly.holes):
-            if (
-                _first_crossing(poly.outer, hole) is not None
-                or not _in_ring(poly.outer, hole[:1, 0], hole[:1, 1]).all()
-            ):
-                where = (float(hole[0, 0]), float(hole[0, 1]))
-                raise PlanningError(f"{name} hole {i + 1} is not inside its outer ring", where)
-            for j in range(i):
-                other = poly.holes[j]
-                inside = (
-                    _in_ring(other, hole[:1, 0], hole[:1, 1]).all()
-                    or _in_ring(hole, other[:1, 0], other[:1, 1]).all()
+                i, j, where = crossing
+                raise PlanningError(
+                    f"{label} crosses itself (edges {min(i, j) + 1} and {max(i, j) + 1})", where
                 )
-                if inside or _first_crossing(hole, other) is not None:
-                    where = (float(hole[0, 0]), float(hole[0, 1]))
-                    raise PlanningError(f"{name} holes {j + 1} and {i + 1} overlap", where)
+        outer = shapely.Polygon(poly.outer)
+        holes = [shapely.Polygon(h) for h in poly.holes]
+        for i, hole in enumerate(holes):
+            if not outer.contains_properly(hole):
+                out = shapely.difference(hole, outer)
+                if out.is_empty:  # inside, but touching the outer ring
+                    out = shapely.intersection(hole.boundary, outer.boundary)
+                raise PlanningError(
+                    f"{name} hole {i + 1} is not inside its outer ring", _place(out)
+                )
+            for j in range(i):
+                if hole.intersects(holes[j]):
+                    raise PlanningError(
+                        f"{name} holes {j + 1} and {i + 1} overlap",
+                        _place(shapely.intersection(hole, holes[j])),
+                    )
 
 
-def convex_hull(points: FloatArray) -> FloatArray:
-    """Counter-clockwise convex hull (Andrew's monotone chain) of (n, 2) points."""
-    pts = np.unique(np.round(points, 9), axis=0)
-    if len(pts) < 3:
-        return pts
-
-    def half(seq: FloatArray) -> list[FloatArray]:
-        chain: list[FloatArray] = []
-        for p in seq:
-            while len(chain) >= 2:
-                o, a = chain[-2], chain[-1]
-                if (a[0] - o[0]) * (p[1] - o[1]) - (a[1] - o[1]) * (p[0] - o[0]) > 1e-12:
-                    break
-                chain.pop()
-            chain.append(p)
-        return chain
-
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1])
+def _place(geometry: shapely.Geometry) -> Point:
+    """A point on a (non-empty) geometry, for an error's ``where``."""
+    point = shapely.point_on_surface(geometry)
+    return (float(point.x), float(point.y))

@@ -2,43 +2,50 @@
 
 Frames and units: positions are metres east/north in the survey's local grid frame
 (``mapping.geo.LocalFrame``); bearings are radians clockwise from grid north; widths and
-distances are metres. No files and no projections here: ``seamap.plan_files`` reads the
-area, converts to and from WGS84 and writes the mission files.
+distances are metres, areas square metres.
 
 The plan is a boustrophedon (lawnmower) coverage path (the family is surveyed by Galceran &
 Carreras 2013, doi:10.1016/j.robot.2013.09.004) for a boat that must not enter keep-outs:
 
+- Each hole is grown by ``clearance`` into a *keep-out* of the hole's own shape
+  (``planning.keepouts``); grown holes that overlap are one keep-out.
 - Lanes are lines along ``bearing``, ``spacing`` apart across the area, centred on it, so
   each lane answers for a band of one spacing and the outermost lanes lie at most half a
   spacing inside the area's extreme points. The boat runs them in alternate directions.
-- A lane is driven wherever it crosses the area, from ``lead_in`` before the boundary to
-  ``lead_in`` after it (the boat is straight and steady when it enters, and the turn lies
-  outside the area). Runs of one lane closer than twice the lead-in merge into one.
-- Each hole (keep-out) is grown into a *keep-out hull*: the convex hull of the hole grown
-  by ``clearance`` (overlapping hulls are merged). A lane ends where it meets a hull and
-  goes on from where it leaves it. The boat never crosses a hull: any leg that would is
-  routed along the hull's outline, the shorter way round, and the first time the boat meets
-  a hull it goes once all the way round it first, which maps the ring between the lanes'
-  ends and the hole that no lane can reach.
-- Between the runs of one lane across a concave notch of the area the boat keeps to the
-  lane line (a *transit*): the outside of the area is not a keep-out (lead-ins and turns lie
-  there anyway); draw what must be avoided as holes.
+- A lane is driven wherever it crosses the area less the keep-outs (shapely cuts the
+  lines), from ``lead_in`` before the area's boundary to ``lead_in`` after it (the boat is
+  straight and steady when it enters, and the turn lies outside the area); where a
+  keep-out stops it, it ends on the keep-out's outline and goes on where it leaves it.
+  Runs of one lane closer than twice the lead-in merge into one. A keep-out's concavity
+  wider than twice the clearance gets lanes into it like any other water.
+- Every leg between two runs is the shortest path that enters no keep-out: straight when
+  it can be, else round the keep-outs through their corners (``Keepouts.route``: a
+  visibility graph and Dijkstra), just clear of their outlines. The legs of a way round
+  are *detours*, which map like lanes (the boat drives them straight). Between the runs
+  of one lane across a concave notch of the area the straight way is the lane line itself
+  (a *transit*): the outside of the area is not a keep-out (lead-ins and turns lie there
+  anyway); draw what must be avoided as holes.
+- *Once round*: the boat meets a keep-out where a lane stops at it or a way round bends at
+  it. The first time it meets one it may go once round it along its outline, which maps
+  the ring of water between the lanes' ends and the hole (lanes stop a clearance short of
+  the hole and their swath has square ends). It does when that loop would map more than
+  ``LOOP_MIN_M2`` of the area that the rest of the path leaves unmapped, judged with the
+  sonar's usable half swath, keep-out by keep-out in the order the boat meets them, each
+  loop kept counting as mapped for the next. Where the lanes and the ways round already
+  map all round a hole, which the shortest ways round between lane ends along its
+  outline mostly do, the loop would be time for nothing and is left out.
 
 Coverage model (``planning.coverage``): the sonar's usable swath (``sonar_swath``) is a band
 ``half_width_m`` each side of every leg the boat drives straight while mapping, plus a disc
 of that radius at each waypoint between two mapping legs. With a side overlap of at least
 50% every seabed point is within the swath of two lanes run in opposite directions, and the
-whole area is covered when its holes are convex and far apart.
-What the convex keep-out hulls give away: water in a hole's concavity, and between holes
-closer than about twice the clearance (one hull takes in both), is not driven; the coverage
-estimate counts it as not covered. Draw such holes convex, or as one hole.
-
-This module lays the lanes over the area and routes the path; what it builds on lives
-beside it: ``planning.area`` (the area, its validation, convex hulls),
-``planning.keepouts`` (keep-out hulls and the way round them), ``planning.swath`` (the sonar's
-usable swath), ``planning.plan`` (the planned path, its length and duration) and
-``planning.coverage`` (the coverage estimate). Their public names are importable from here
-too, so ``planning.lawnmower`` is the one import for survey planning.
+water round the holes, in their bays and between them is mapped by the lanes that reach
+it, the ways round and the loops. What is left out: water the boat cannot enter (between
+holes closer than twice the clearance, in a bay whose mouth is narrower than that, and
+all that keep-outs close in) is mapped only as far as the swath reaches into it from
+outside. The path is planned lane by lane: the runs of lanes into a bay are reached one
+after another, each by a way round (no decomposition of the area into cells, each swept
+on its own).
 """
 
 from __future__ import annotations
@@ -48,60 +55,26 @@ import math
 
 import numpy as np
 import numpy.typing as npt
+import shapely
 
-from planning.area import (
-    EPS_M,
-    Area,
-    PlanningError,
-    Point,
-    Polygon,
-    clean_ring,
-    convex_hull,
-    ring_area,
-    validate_area,
-)
-from planning.coverage import MAPPING_LEGS, Coverage, coverage, swept
-from planning.keepouts import around_hull, clip_to_hull, keepout_hulls
-from planning.plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
-from planning.swath import MIN_LOOK_M, Swath, sonar_swath
-
-__all__ = [
-    "ENTRY_CORNERS",
-    "MAPPING_LEGS",
-    "MAX_LANES",
-    "MIN_LOOK_M",
-    "MIN_RUN_M",
-    "TURN_RATE_RAD_S",
-    "Area",
-    "Coverage",
-    "Leg",
-    "LegKind",
-    "PlanningError",
-    "Polygon",
-    "Run",
-    "SurveyPlan",
-    "Swath",
-    "area_width",
-    "candidate_bearings",
-    "choose_bearing",
-    "clean_ring",
-    "convex_hull",
-    "coverage",
-    "keepout_hulls",
-    "lane_offsets",
-    "plan_path",
-    "plan_survey",
-    "ring_area",
-    "sonar_swath",
-    "swept",
-    "validate_area",
-]
+from planning.area import EPS_M, Area, PlanningError, Point, validate_area
+from planning.coverage import swath_cover
+from planning.keepouts import Keepouts
+from planning.plan import Leg, LegKind, Run, SurveyPlan
 
 FloatArray = npt.NDArray[np.float64]
 
 MIN_RUN_M = 1.0
 """An area whose longest lane run is shorter than this is too small for one lane (m)."""
 MAX_LANES = 5000
+LOOP_MIN_M2 = 0.05
+"""Once round a keep-out is driven when it maps more of the area than this (m²) that the
+rest of the path leaves unmapped; less is the swath's discs drawn as polygons, not water."""
+ENTRY_CORNERS = ("nw", "ne", "sw", "se", "auto")
+
+# A lane run: its start and end (along the lane, lead-ins included), where it enters and
+# leaves the area, and whether the start and end were made by a keep-out.
+_Run = tuple[float, float, float, float, bool, bool]
 
 
 # --- lanes ---
@@ -114,17 +87,31 @@ def _axes(bearing_rad: float) -> tuple[FloatArray, FloatArray]:
     return along, across
 
 
-def _line_crossings(ring_uv: FloatArray, offsets: FloatArray) -> list[FloatArray]:
-    """For each lane (across offset v), the sorted along-coordinates where the lane line
-    crosses the ring; pairs of them bound the inside. Half-open at the vertices, so a lane
-    through a vertex counts it once."""
-    u1, v1 = ring_uv[:, 0], ring_uv[:, 1]
-    u2, v2 = np.roll(u1, -1), np.roll(v1, -1)
-    c = offsets[:, None]
-    hit = ((v1 <= c) & (c < v2)) | ((v2 <= c) & (c < v1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = u1 + (c - v1) * (u2 - u1) / (v2 - v1)
-    return [np.sort(u[k, hit[k]]) for k in range(len(offsets))]
+def _lane_intervals(
+    geometry: shapely.Geometry, along: FloatArray, across: FloatArray, offsets: FloatArray
+) -> list[list[tuple[float, float]]]:
+    """For each lane (across offset v), the (from, to) along-coordinates of the pieces of
+    the lane line inside ``geometry`` (a point where it only touches is no piece)."""
+    out: list[list[tuple[float, float]]] = [[] for _ in offsets]
+    if shapely.is_empty(geometry):
+        return out
+    e0, n0, e1, n1 = shapely.bounds(geometry)
+    corners = np.array([(e0, n0), (e0, n1), (e1, n0), (e1, n1)]) @ along
+    u = np.array([corners.min() - 1.0, corners.max() + 1.0])
+    ends = u[None, :, None] * along + offsets[:, None, None] * across  # (lane, end, east/north)
+    pieces, lane = shapely.get_parts(
+        shapely.intersection(shapely.linestrings(ends), geometry), return_index=True
+    )
+    line = shapely.get_type_id(pieces) == shapely.GeometryType.LINESTRING
+    xy, piece = shapely.get_coordinates(pieces[line], return_index=True)
+    position = xy @ along
+    lo = np.full(int(line.sum()), np.inf)
+    hi = np.full(int(line.sum()), -np.inf)
+    np.minimum.at(lo, piece, position)
+    np.maximum.at(hi, piece, position)
+    for k, a, b in zip(lane[line], lo, hi, strict=True):
+        out[int(k)].append((float(a), float(b)))
+    return out
 
 
 def _union(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -137,66 +124,6 @@ def _union(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
         else:
             out.append((a, b))
     return out
-
-
-def _subtract(
-    keep: list[tuple[float, float]], cut: list[tuple[float, float]]
-) -> list[tuple[float, float, bool, bool]]:
-    """keep minus cut, each piece tagged with whether each end was made by a cut."""
-    pieces: list[tuple[float, float, bool, bool]] = []
-    for a, b in keep:
-        parts = [(a, b, False, False)]
-        for k0, k1 in cut:
-            nxt: list[tuple[float, float, bool, bool]] = []
-            for p0, p1, t0, t1 in parts:
-                if k1 <= p0 or k0 >= p1:
-                    nxt.append((p0, p1, t0, t1))
-                    continue
-                if k0 > p0:
-                    nxt.append((p0, k0, t0, True))
-                if k1 < p1:
-                    nxt.append((k1, p1, True, t1))
-            parts = nxt
-        pieces.extend(p for p in parts if p[1] - p[0] > EPS_M)
-    return pieces
-
-
-def _route(
-    start: Point,
-    end: Point,
-    kind: LegKind,
-    lane: int,
-    hulls: list[FloatArray],
-    visited: set[int],
-) -> list[Leg]:
-    """Legs from start to end: straight, or round every keep-out hull in the way."""
-    legs: list[Leg] = []
-    here = np.array(start)
-    goal = np.array(end)
-    for _ in range(4 * len(hulls) + 1):
-        hits = [(clip, i) for i, h in enumerate(hulls) if (clip := clip_to_hull(here, goal, h))]
-        if not hits:
-            break
-        (t_in, t_out, e_in, e_out), i = min(hits, key=lambda hit: hit[0][0])
-        p = here + t_in * (goal - here)
-        q = here + t_out * (goal - here)
-        if t_in * float(np.hypot(*(goal - here))) > EPS_M:
-            legs.append(Leg(kind, lane, _pt(here), _pt(p)))
-        points = [_pt(p), *around_hull(p, q, e_in, e_out, hulls[i], i not in visited), _pt(q)]
-        visited.add(i)
-        legs.extend(
-            Leg(LegKind.DETOUR, lane, a, b)
-            for a, b in itertools.pairwise(points)
-            if math.dist(a, b) > EPS_M
-        )
-        here = q
-    if float(np.hypot(*(goal - here))) > EPS_M:
-        legs.append(Leg(kind, lane, _pt(here), _pt(goal)))
-    return legs
-
-
-def _pt(v: FloatArray) -> Point:
-    return (float(v[0]), float(v[1]))
 
 
 def area_width(area: Area, bearing_rad: float) -> float:
@@ -222,51 +149,38 @@ def lane_offsets(area: Area, bearing_rad: float, spacing_m: float) -> FloatArray
     return offsets
 
 
-def plan_path(
+def _lane_runs(
     area: Area,
+    keepouts: Keepouts,
     *,
     bearing_rad: float,
     spacing_m: float,
     lead_in_m: float,
-    clearance_m: float,
     reverse_sweep: bool = False,
-    reverse_first: bool = False,
-) -> SurveyPlan:
-    """The lawnmower over ``area`` with lanes along ``bearing_rad`` (see module doc).
-
-    reverse_sweep: take the lanes from the left (looking along the bearing) instead of the
-    right; reverse_first: run the first lane against the bearing. Raises PlanningError if
-    no lane runs at least ``MIN_RUN_M`` over the area.
-    """
+) -> list[tuple[float, list[_Run]]]:
+    """The lanes in sweep order, each its across offset and its runs in the bearing's
+    direction (the module doc's rules). Raises PlanningError if no lane runs at least
+    ``MIN_RUN_M`` over the area."""
     along, across = _axes(bearing_rad)
     offsets = lane_offsets(area, bearing_rad, spacing_m)
-    hulls = keepout_hulls(area.holes, clearance_m)
-    to_uv = np.column_stack([along, across])
-
-    inside: list[list[tuple[float, float]]] = [[] for _ in offsets]
-    for poly in area.polygons:
-        for k, u in enumerate(_line_crossings(poly.outer @ to_uv, offsets)):
-            inside[k].extend(zip(u[0::2], u[1::2], strict=True))
-    keepout: list[list[tuple[float, float]]] = [[] for _ in offsets]
-    for hull in hulls:
-        for k, u in enumerate(_line_crossings(hull @ to_uv, offsets)):
-            keepout[k].extend(zip(u[0::2], u[1::2], strict=True))
-
-    order = list(range(len(offsets)))
-    if reverse_sweep:
-        order.reverse()
+    free = shapely.difference(area.geometry, keepouts.geometry)
+    inside = _lane_intervals(free, along, across, offsets)
+    blocked = _lane_intervals(keepouts.geometry, along, across, offsets)
+    order = range(len(offsets) - 1, -1, -1) if reverse_sweep else range(len(offsets))
     longest = 0.0
-    lanes: list[tuple[float, list[tuple[float, float, float, float, bool, bool]]]] = []
+    lanes: list[tuple[float, list[_Run]]] = []
     for k in order:
-        cut = _union(keepout[k])
-        pieces = _subtract(_union(inside[k]), cut)
+        pieces = _union(inside[k])
         if not pieces:
             continue
-        longest = max(longest, max(b - a for a, b, _, _ in pieces))
-        runs: list[tuple[float, float, float, float, bool, bool]] = []
-        for a, b, cut_a, cut_b in pieces:
-            start = a if cut_a else max([a - lead_in_m] + [k1 for _, k1 in cut if k1 <= a + EPS_M])
-            end = b if cut_b else min([b + lead_in_m] + [k0 for k0, _ in cut if k0 >= b - EPS_M])
+        cut = _union(blocked[k])
+        longest = max(longest, max(b - a for a, b in pieces))
+        runs: list[_Run] = []
+        for a, b in pieces:
+            cut_a = any(abs(k1 - a) <= EPS_M for _, k1 in cut)
+            cut_b = any(abs(k0 - b) <= EPS_M for k0, _ in cut)
+            start = a if cut_a else max([a - lead_in_m] + [k1 for _, k1 in cut if k1 <= a])
+            end = b if cut_b else min([b + lead_in_m] + [k0 for k0, _ in cut if k0 >= b])
             if runs and start <= runs[-1][1] + EPS_M:
                 s0, _, a0, _, c0, _ = runs[-1]
                 runs[-1] = (s0, end, a0, b, c0, cut_b)
@@ -278,13 +192,90 @@ def plan_path(
             f"the area is too small for one lane: its longest run along the lanes is "
             f"{longest:.2f} m (at least {MIN_RUN_M:g} m needed)"
         )
+    return lanes
+
+
+# --- the path ---
+
+
+def _connect(start: Point, end: Point, kind: LegKind, lane: int, keepouts: Keepouts) -> list[Leg]:
+    """Legs from start to end: one straight leg of ``kind``, or the way round the
+    keep-outs in between (detours)."""
+    bends = keepouts.route(start, end)
+    if not bends:
+        return [Leg(kind, lane, start, end)] if math.dist(start, end) > EPS_M else []
+    return [
+        Leg(LegKind.DETOUR, lane, a, b)
+        for a, b in itertools.pairwise([start, *bends, end])
+        if math.dist(a, b) > EPS_M
+    ]
+
+
+def _once_round(legs: list[Leg], area: Area, keepouts: Keepouts, half_width_m: float) -> list[Leg]:
+    """The path with a loop round each keep-out where the boat first meets it, for the
+    keep-outs whose loop maps more than ``LOOP_MIN_M2`` the path leaves unmapped."""
+    if not legs or not keepouts.polygons:
+        return legs
+    first: dict[int, int] = {}  # keep-out: the leg at whose end the boat first meets it
+    for i, k in enumerate(keepouts.at(np.array([leg.end for leg in legs]))):
+        if k is not None and k not in first:
+            first[k] = i
+    covered = shapely.intersection(swath_cover(legs, half_width_m), area.geometry)
+    loops: dict[int, list[Leg]] = {}
+    for k, i in sorted(first.items(), key=lambda item: item[1]):
+        here = legs[i].end
+        onward = legs[i + 1].end if i + 1 < len(legs) else here
+        points = [here, *keepouts.loop(k, here, onward)]
+        loop = [
+            Leg(LegKind.DETOUR, legs[i].lane, a, b)
+            for a, b in itertools.pairwise(points)
+            if math.dist(a, b) > EPS_M
+        ]
+        mapped = shapely.intersection(swath_cover(loop, half_width_m), area.geometry)
+        if shapely.area(shapely.difference(mapped, covered)) > LOOP_MIN_M2:
+            loops[i] = loop
+            covered = shapely.union(covered, mapped)
+    return [step for i, leg in enumerate(legs) for step in [leg, *loops.get(i, [])]]
+
+
+def plan_path(
+    area: Area,
+    *,
+    bearing_rad: float,
+    spacing_m: float,
+    lead_in_m: float,
+    clearance_m: float,
+    reverse_sweep: bool = False,
+    reverse_first: bool = False,
+    half_width_m: float | None = None,
+    keepouts: Keepouts | None = None,
+) -> SurveyPlan:
+    """The lawnmower over ``area`` with lanes along ``bearing_rad`` (see module doc).
+
+    reverse_sweep: take the lanes from the left (looking along the bearing) instead of the
+    right; reverse_first: run the first lane against the bearing. half_width_m: the usable
+    half swath the loops round keep-outs are judged by (default ``spacing_m``, as at 50 %
+    side overlap). keepouts: ``Keepouts.around(area.holes, clearance_m)``, if already
+    built. Raises PlanningError if no lane runs at least ``MIN_RUN_M`` over the area.
+    """
+    along, across = _axes(bearing_rad)
+    if keepouts is None:
+        keepouts = Keepouts.around(area.holes, clearance_m)
+    lanes = _lane_runs(
+        area,
+        keepouts,
+        bearing_rad=bearing_rad,
+        spacing_m=spacing_m,
+        lead_in_m=lead_in_m,
+        reverse_sweep=reverse_sweep,
+    )
 
     def point(u: float, v: float) -> Point:
-        return _pt(u * along + v * across)
+        xy = u * along + v * across
+        return (float(xy[0]), float(xy[1]))
 
     plan_runs: list[Run] = []
     legs: list[Leg] = []
-    visited: set[int] = set()
     for index, (v, runs) in enumerate(lanes):
         forward = (index % 2 == 0) != reverse_first
         ordered = runs if forward else runs[::-1]
@@ -294,12 +285,11 @@ def plan_path(
             else:
                 run = Run(index, point(e, v), point(s, v), point(b, v), point(a, v), cut_b, cut_a)
             if legs:
-                kind = LegKind.TRANSIT if j > 0 else LegKind.TURN
-                legs.extend(
-                    _route(legs[-1].end, run.start, kind, index if j else -1, hulls, visited)
-                )
-            legs.extend(_route(run.start, run.end, LegKind.LANE, index, hulls, visited))
+                kind, lane = (LegKind.TRANSIT, index) if j > 0 else (LegKind.TURN, -1)
+                legs.extend(_connect(legs[-1].end, run.start, kind, lane, keepouts))
+            legs.append(Leg(LegKind.LANE, index, run.start, run.end))
             plan_runs.append(run)
+    legs = _once_round(legs, area, keepouts, spacing_m if half_width_m is None else half_width_m)
     bearing = bearing_rad if not reverse_first else bearing_rad + math.pi
     return SurveyPlan(
         bearing_rad=bearing % (2 * math.pi),
@@ -308,16 +298,22 @@ def plan_path(
         clearance_m=clearance_m,
         runs=tuple(plan_runs),
         legs=tuple(legs),
-        keepouts=tuple(hulls),
+        keepouts=keepouts.rings,
     )
+
+
+# --- the bearing and the whole plan ---
 
 
 def candidate_bearings(area: Area, step_deg: float = 5.0) -> list[float]:
     """Lane bearings (radians, 0..pi) worth trying: along each edge of the area's convex
     hull (rotating calipers: the narrowest width lies across one of them) and every
     ``step_deg`` degrees."""
-    hull = convex_hull(np.concatenate([p.outer for p in area.polygons]))
-    d = np.roll(hull, -1, axis=0) - hull
+    hull = shapely.convex_hull(
+        shapely.multipoints(np.concatenate([p.outer for p in area.polygons]))
+    )
+    ring = shapely.get_coordinates(hull)
+    d = np.diff(ring, axis=0)
     edges = np.arctan2(d[:, 0], d[:, 1]) % math.pi
     grid = np.radians(np.arange(0.0, 180.0, step_deg))
     out: list[float] = []
@@ -327,36 +323,38 @@ def candidate_bearings(area: Area, step_deg: float = 5.0) -> list[float]:
     return out
 
 
-def choose_bearing(area: Area, *, spacing_m: float, lead_in_m: float, clearance_m: float) -> float:
+def choose_bearing(
+    area: Area,
+    *,
+    spacing_m: float,
+    lead_in_m: float,
+    clearance_m: float,
+    keepouts: Keepouts | None = None,
+) -> float:
     """The lane bearing (radians, 0..pi) with the fewest runs (each costs a turn), then the
     narrowest width across the lanes (fewest, longest lanes), among ``candidate_bearings``.
 
     Time alone is not the measure: a slightly skewed set of lanes that clips the corners
     of a rectangle is a little shorter, but no surveyor wants it."""
+    if keepouts is None:
+        keepouts = Keepouts.around(area.holes, clearance_m)
     best: tuple[tuple[int, float], float] | None = None
     failure: PlanningError | None = None
     for bearing in candidate_bearings(area):
         try:
-            plan = plan_path(
-                area,
-                bearing_rad=bearing,
-                spacing_m=spacing_m,
-                lead_in_m=lead_in_m,
-                clearance_m=clearance_m,
+            lanes = _lane_runs(
+                area, keepouts, bearing_rad=bearing, spacing_m=spacing_m, lead_in_m=lead_in_m
             )
         except PlanningError as exc:
             failure = exc
             continue
-        cost = (len(plan.runs), round(area_width(area, bearing), 3))
+        cost = (sum(len(runs) for _, runs in lanes), round(area_width(area, bearing), 3))
         if best is None or cost < best[0]:
             best = (cost, bearing)
     if best is None:
         assert failure is not None
         raise failure
     return best[1]
-
-
-ENTRY_CORNERS = ("nw", "ne", "sw", "se", "auto")
 
 
 def plan_survey(
@@ -369,11 +367,13 @@ def plan_survey(
     speed_mps: float = 1.0,
     entry: str = "auto",
     home: Point | None = None,
+    half_width_m: float | None = None,
 ) -> SurveyPlan:
     """The whole plan: lane bearing (given, or ``choose_bearing``), then the lane order.
 
     entry: the corner of the area (grid north-west, ...) nearest which the path starts;
     "auto": nearest ``home`` if given, else the quickest of the four ways to sweep.
+    half_width_m: the sonar's usable half swath (default ``spacing_m``: 50 % overlap).
     """
     validate_area(area)
     if spacing_m <= 0:
@@ -382,12 +382,14 @@ def plan_survey(
         raise PlanningError("lead-in and clearance must not be negative")
     if entry not in ENTRY_CORNERS:
         raise PlanningError(f"entry {entry!r} is not one of {', '.join(ENTRY_CORNERS)}")
+    keepouts = Keepouts.around(area.holes, clearance_m)
     if bearing_rad is None:
         bearing_rad = choose_bearing(
             area,
             spacing_m=spacing_m,
             lead_in_m=lead_in_m,
             clearance_m=clearance_m,
+            keepouts=keepouts,
         )
     options = [
         plan_path(
@@ -398,6 +400,8 @@ def plan_survey(
             clearance_m=clearance_m,
             reverse_sweep=sweep,
             reverse_first=first,
+            half_width_m=half_width_m,
+            keepouts=keepouts,
         )
         for sweep in (False, True)
         for first in (False, True)

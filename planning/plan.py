@@ -27,7 +27,7 @@ seconds (the boat slows to turn; a 180-degree turnaround costs about 6 s)."""
 class LegKind(StrEnum):
     LANE = "lane"  # a run of a lane, lead-in to run-out
     TRANSIT = "transit"  # along the lane line between two runs of one lane (concave notch)
-    DETOUR = "detour"  # along a keep-out hull's outline
+    DETOUR = "detour"  # round a keep-out (its corners and outline)
     TURN = "turn"  # from the end of one lane to the start of the next
 
 
@@ -49,8 +49,9 @@ class Leg:
 class Run:
     """One run of a lane: driven from ``start`` to ``end`` (its first and last waypoints),
     over the area from ``entry`` to ``exit``. ``starts_at_keepout`` / ``ends_at_keepout``:
-    that end lies on a keep-out hull (no lead-in there) rather than ``lead_in`` beyond the
-    area's boundary (a lead-in is also cut short where a hull is closer than that)."""
+    that end lies on a keep-out's outline (no lead-in there) rather than ``lead_in`` beyond
+    the area's boundary (a lead-in is also cut short where a keep-out is closer than
+    that)."""
 
     lane: int
     start: Point
@@ -64,7 +65,8 @@ class Run:
 @dataclass(frozen=True, eq=False)
 class SurveyPlan:
     """A planned lawnmower: lanes along ``bearing_rad`` (grid, the first lane's direction),
-    ``spacing_m`` apart; its runs and the legs of the whole path in driving order."""
+    ``spacing_m`` apart; its runs and the legs of the whole path in driving order, and the
+    outlines of the keep-outs it keeps out of (counter-clockwise (n, 2) rings)."""
 
     bearing_rad: float
     spacing_m: float

@@ -8,8 +8,9 @@ pictures.
   ``plannedHomePosition`` in as item 0, the home slot ArduPilot overwrites.
 - ``mission_planner_waypoints``: the same mission for Mission Planner (``QGC WPL 110``,
   line 0 home).
-- ``plan_geojson``: the area, keep-out hulls, legs (LineStrings) and waypoints (Points),
-  WGS84 lon/lat, for QGIS.
+- ``plan_geojson``: the area, keep-outs (role ``keepout_hull``, the name they kept from
+  when they were convex hulls), legs (LineStrings) and waypoints (Points), WGS84 lon/lat,
+  for QGIS.
 - ``write_png``: a picture of the plan over the area, with the swath.
 
 The MAVLink numbers the files carry are here too; ``seamap.plan_files`` reads them back.
@@ -152,7 +153,7 @@ def _lonlat(frame: LocalFrame, xy: FloatArray) -> list[list[float]]:
 
 
 def plan_geojson(survey: SurveyArea, plan: SurveyPlan, summary: dict[str, Any]) -> str:
-    """GeoJSON FeatureCollection (WGS84 lon/lat) of the area, keep-out hulls, the path's
+    """GeoJSON FeatureCollection (WGS84 lon/lat) of the area, keep-outs, the path's
     legs (consecutive legs of one kind and lane as one LineString) and the waypoints."""
     frame = survey.frame
 
@@ -174,12 +175,12 @@ def plan_geojson(survey: SurveyArea, plan: SurveyPlan, summary: dict[str, Any]) 
     features: list[dict[str, Any]] = [
         {"type": "Feature", "properties": {"role": "area", **area_props}, "geometry": area_geometry}
     ]
-    for hull in plan.keepouts:
+    for keepout in plan.keepouts:
         features.append(
             {
                 "type": "Feature",
                 "properties": {"role": "keepout_hull", "clearance_m": plan.clearance_m},
-                "geometry": {"type": "Polygon", "coordinates": [closed(_lonlat(frame, hull))]},
+                "geometry": {"type": "Polygon", "coordinates": [closed(_lonlat(frame, keepout))]},
             }
         )
     groups: list[tuple[LegKind, int, list[tuple[float, float]]]] = []
@@ -238,8 +239,10 @@ def write_png(
         axes.add_patch(PolygonPatch(polygon.outer, closed=True, fc="#e8f1e4", ec="#2f6b2f"))
         for hole in polygon.holes:
             axes.add_patch(PolygonPatch(hole, closed=True, fc="#f3c9c0", ec="#b91c1c", hatch="//"))
-    for hull in plan.keepouts:
-        axes.add_patch(PolygonPatch(hull, closed=True, fill=False, ec="#b91c1c", ls="--", lw=0.8))
+    for keepout in plan.keepouts:
+        axes.add_patch(
+            PolygonPatch(keepout, closed=True, fill=False, ec="#b91c1c", ls="--", lw=0.8)
+        )
     bands = []
     hw = swath.half_width_m
     for leg in plan.legs:

@@ -6,7 +6,7 @@ writes four files next to ``out`` (``seamap.plan_export``):
 
 - ``PLAN.plan``: a QGroundControl plan, which QGroundControl opens and MAVSDK imports;
 - ``PLAN.waypoints``: the same mission for Mission Planner (``QGC WPL 110``);
-- ``PLAN.geojson``: the area, keep-out hulls, legs and waypoints (WGS84 lon/lat), for QGIS;
+- ``PLAN.geojson``: the area, keep-outs, legs and waypoints (WGS84 lon/lat), for QGIS;
 - ``PLAN.png``: a picture of the plan over the area, with the swath.
 
 ``read_plan`` reads the waypoints, speed, home and firmware back from a ``.plan``.
@@ -173,6 +173,7 @@ def plan_survey(
             speed_mps=speed_mps,
             entry=entry,
             home=home_local,
+            half_width_m=swath.half_width_m,
         )
     except PlanningError as exc:
         raise SeamapError(f"{area}: {located_message(exc, frame)}") from None

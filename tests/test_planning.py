@@ -13,20 +13,27 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+import shapely
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
+from scipy.sparse.csgraph import shortest_path
 
+import planning.lawnmower
 from mapping.geo import LocalFrame
 from planning import (
     Area,
+    Keepouts,
     LegKind,
+    PlanningError,
     Polygon,
     SurveyPlan,
     candidate_bearings,
     coverage,
+    plan_path,
     plan_survey,
     sonar_swath,
+    validate_area,
 )
 from seamap.config import SiteConfig, SonarConfig
 from seamap.errors import SeamapError
@@ -233,6 +240,303 @@ def test_any_rectangle_at_any_lane_angle_is_covered(
     area = Area((Polygon(corners),))
     plan = plan_of(area, bearing_deg=lanes)
     assert in_swath(plan, grid_inside(area, 0.7)).all()
+
+
+# --- keep-outs of any shape ---
+
+C_HOLE = Area(
+    (
+        Polygon(
+            ring((0, 0), (60, 0), (60, 50), (0, 50)),
+            # a C open to the west: its bay is 24 m deep and 14 m wide
+            (ring((15, 12), (45, 12), (45, 38), (15, 38), (15, 32), (39, 32), (39, 18), (15, 18)),),
+        ),
+    )
+)
+# Two bars in an L, 3 m apart at the elbow (less than twice the clearance): grown by the
+# clearance they are one keep-out, and the water inside the L opens out from the elbow.
+TWO_BARS = Area(
+    (
+        Polygon(
+            ring((0, 0), (60, 0), (60, 55), (0, 55)),
+            (
+                ring((10, 10), (40, 10), (40, 16), (10, 16)),
+                ring((10, 19), (16, 19), (16, 45), (10, 45)),
+            ),
+        ),
+    )
+)
+# A U-shaped lease with an L-shaped hole in one arm and a U-shaped hole in its base.
+U_LEASE = Area(
+    (
+        Polygon(
+            ring((0, 0), (80, 0), (80, 60), (55, 60), (55, 25), (25, 25), (25, 60), (0, 60)),
+            (
+                ring((4, 30), (21, 30), (21, 35), (10, 35), (10, 56), (4, 56)),
+                ring((35, 4), (60, 4), (60, 20), (55, 20), (55, 9), (40, 9), (40, 20), (35, 20)),
+            ),
+        ),
+    )
+)
+
+
+def grid_in(region: shapely.Geometry, step: float = 0.25) -> np.ndarray:
+    e0, n0, e1, n1 = shapely.bounds(region)
+    east, north = np.meshgrid(
+        np.arange(e0, e1, step) + step / 2, np.arange(n0, n1, step) + step / 2
+    )
+    inside = shapely.contains_xy(region, east, north)
+    return np.column_stack([east[inside], north[inside]])
+
+
+def assert_clear_of_holes(plan: SurveyPlan, area: Area, clearance: float = CLEARANCE) -> None:
+    """No leg comes within the clearance of a hole (less a millimetre), i.e. none meets
+    the inside of a hole grown by the clearance, and none enters a keep-out deeper than a
+    millimetre."""
+    legs = shapely.linestrings([[leg.start, leg.end] for leg in plan.legs])
+    for k, hole in enumerate(area.holes):
+        gap = shapely.distance(legs, shapely.Polygon(hole))
+        worst = int(np.argmin(gap))
+        assert gap[worst] >= clearance - 1e-3, (
+            f"{plan.legs[worst]} passes {gap[worst]:.3f} m from hole {k + 1}"
+        )
+    for keepout in plan.keepouts:
+        inside = shapely.buffer(shapely.Polygon(keepout), -1e-3)
+        assert not shapely.intersects(legs, inside).any()
+
+
+@pytest.mark.parametrize("bearing_deg", [None, 0.0, 90.0])
+def test_the_water_in_a_hole_s_bay_is_covered(bearing_deg: float | None) -> None:
+    plan = plan_of(C_HOLE, bearing_deg)
+    hole = shapely.Polygon(C_HOLE.holes[0])
+    bay = shapely.difference(shapely.convex_hull(hole), hole)
+    points = grid_in(bay)
+    assert in_swath(plan, points).mean() >= 0.9
+    # the boat goes into the bay, not round a hull that swallows it
+    assert any(
+        bay.contains(shapely.Point(run.entry)) or bay.contains(shapely.Point(run.exit))
+        for run in plan.runs
+    )
+    assert_clear_of_holes(plan, C_HOLE)
+
+
+def test_the_water_between_close_holes_is_covered_where_the_boat_fits() -> None:
+    plan = plan_of(TWO_BARS)
+    bars = [shapely.Polygon(h) for h in TWO_BARS.holes]
+    assert shapely.distance(bars[0], bars[1]) < 2 * CLEARANCE and len(plan.keepouts) == 1
+    holes = shapely.union_all(bars)
+    between = shapely.difference(shapely.convex_hull(holes), holes)
+    # The water the boat can come within the clearance of: wider there than twice the
+    # clearance (at the elbow it is not; the swath from outside reaches in a little).
+    open_water = shapely.difference(between, shapely.buffer(holes, CLEARANCE))
+    reach = shapely.intersection(shapely.buffer(open_water, CLEARANCE), between)
+    assert reach.area > 0.9 * between.area
+    assert in_swath(plan, grid_in(reach)).mean() >= 0.99
+    assert_clear_of_holes(plan, TWO_BARS)
+
+
+def test_a_concave_lease_with_concave_holes_is_covered() -> None:
+    plan = plan_of(U_LEASE)
+    points = grid_inside(U_LEASE, 0.25)
+    assert in_swath(plan, points).mean() >= 0.97
+    assert coverage(U_LEASE, plan, HALF).fraction >= 0.97
+    assert_clear_of_holes(plan, U_LEASE)
+
+
+LOOPED = Area(
+    (
+        Polygon(
+            ring((0, 0), (40, 0), (40, 30), (0, 30)),
+            (ring((32, 15), (38, 15), (38, 17), (32, 17)),),
+        ),
+    )
+)
+
+
+def test_the_boat_goes_once_round_a_keepout_only_where_that_maps_water(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def loops(plan: SurveyPlan) -> int:
+        """Stretches of detour legs that end where they began, once round a keep-out."""
+        perimeter = shapely.Polygon(plan.keepouts[0]).length
+        found = 0
+        for kind, group in itertools.groupby(plan.legs, key=lambda leg: leg.kind):
+            if kind is not LegKind.DETOUR:
+                continue
+            legs = list(group)
+            points = [legs[0].start, *(leg.end for leg in legs)]
+            along = np.cumsum([0.0, *(leg.length_m for leg in legs)])
+            found += sum(
+                1
+                for i, j in itertools.combinations(range(len(points)), 2)
+                if math.dist(points[i], points[j]) < 1e-9 and along[j] - along[i] > 0.9 * perimeter
+            )
+        return found
+
+    # The lanes and the ways round the five-sided hole map all round it: no loop.
+    assert loops(plan_of(WITH_HOLE)) == 0
+
+    # Lanes at 30 degrees, swept from the west, stop at this hole near the east shore, and
+    # nothing else passes between it and the shore: once round it maps that water.
+    def lanes_at_30() -> SurveyPlan:
+        return plan_path(
+            LOOPED,
+            bearing_rad=math.radians(30.0),
+            spacing_m=SPACING,
+            lead_in_m=LEAD_IN,
+            clearance_m=CLEARANCE,
+            half_width_m=HALF,
+        )
+
+    points = grid_inside(LOOPED)
+    plan = lanes_at_30()
+    assert loops(plan) == 1
+    assert in_swath(plan, points).all()
+    monkeypatch.setattr(planning.lawnmower, "LOOP_MIN_M2", math.inf)
+    plan = lanes_at_30()
+    assert loops(plan) == 0
+    assert not in_swath(plan, points).all()
+
+
+def test_the_way_round_a_keepout_is_the_shortest() -> None:
+    # A square keep-out (no clearance), from 5 m west of it to 5 m east: over two corners.
+    square = ring((0, 0), (10, 0), (10, 10), (0, 10))
+    start, end = (-5.0, 5.0), (15.0, 5.0)
+    path = [start, *Keepouts.around([square], 0.0).route(start, end), end]
+    length = sum(math.dist(a, b) for a, b in itertools.pairwise(path))
+    assert len(path) == 4
+    assert length == pytest.approx(10 + 2 * math.hypot(5, 5), abs=0.05)  # 1 cm clear of it
+    # Out of a C's bay to behind its back: out through the mouth and round an arm, as
+    # short as the shortest path through the keep-out's own vertices (scipy's Dijkstra
+    # over every pair of them that see each other), but for running 1 cm clear.
+    c_keepouts = Keepouts.around(C_HOLE.holes, CLEARANCE)
+    inside = shapely.buffer(c_keepouts.geometry, -1e-3)
+    start, end = (30.0, 25.0), (52.0, 25.0)
+    path = [start, *c_keepouts.route(start, end), end]
+    legs = shapely.linestrings([[a, b] for a, b in itertools.pairwise(path)])
+    assert not shapely.intersects(legs, inside).any()
+    assert min(e for e, _ in path) < 15.0  # left the bay by its mouth
+    nodes = np.vstack([[start, end], *c_keepouts.rings])
+    i, j = np.triu_indices(len(nodes), 1)
+    sight = ~shapely.intersects(shapely.linestrings(np.stack([nodes[i], nodes[j]], axis=1)), inside)
+    graph = np.zeros((len(nodes), len(nodes)))
+    graph[i[sight], j[sight]] = np.hypot(*(nodes[j] - nodes[i]).T)[sight]
+    shortest = shortest_path(graph, directed=False, indices=0)[1]
+    assert 0 <= sum(shapely.length(legs)) - shortest < 0.1
+
+
+def star(centre: tuple[float, float], radii: list[float]) -> np.ndarray:
+    angles = np.arange(len(radii)) * 2 * math.pi / len(radii)
+    return np.column_stack([centre[0] + np.cos(angles) * radii, centre[1] + np.sin(angles) * radii])
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    holes=st.lists(
+        st.tuples(
+            st.floats(12.0, 48.0),
+            st.floats(10.0, 30.0),
+            st.lists(st.floats(1.0, 7.0), min_size=3, max_size=9),
+        ),
+        min_size=1,
+        max_size=3,
+    ),
+    clearance=st.sampled_from([0.0, 1.0, 2.0, 3.5]),
+    lanes=st.floats(0.0, 180.0),
+)
+def test_no_leg_comes_within_the_clearance_of_any_hole(
+    holes: list[tuple[float, float, list[float]]], clearance: float, lanes: float
+) -> None:
+    rings = [star((e, n), radii) for e, n, radii in holes]
+    shapes = [shapely.Polygon(r) for r in rings]
+    assume(all(not a.intersects(b) for a, b in itertools.combinations(shapes, 2)))
+    area = Area((Polygon(ring((0, 0), (60, 0), (60, 40), (0, 40)), tuple(rings)),))
+    plan = plan_survey(
+        area,
+        spacing_m=SPACING,
+        bearing_rad=math.radians(lanes),
+        lead_in_m=LEAD_IN,
+        clearance_m=clearance,
+    )
+    assert_clear_of_holes(plan, area, clearance)
+
+
+# --- validation ---
+
+SQUARE = ring((0, 0), (40, 0), (40, 30), (0, 30))
+INVALID = {
+    "bowtie": (
+        [ring((0, 0), (10, 10), (10, 0), (0, 10))],
+        r"^polygon outer ring crosses itself \(edges 1 and 3\)$",
+        (5.0, 5.0),
+    ),
+    "spike": (
+        [ring((0, 0), (10, 0), (10, 10), (5, 10), (5, 15), (5, 10.01), (0, 10))],
+        r"^polygon outer ring crosses itself \(edges 4 and 5\)$",
+        (5.0, 15.0),
+    ),
+    "line": ([ring((0, 0), (1, 0), (2, 0))], r"has no area \(its points are in a line\)", None),
+    "two points": ([ring((0, 0), (1, 0))], r"fewer than 3 distinct points \(2\)", None),
+    "not a number": ([ring((0, 0), (1, 0), (math.nan, 1))], "not a number", None),
+    "hole outside": (
+        [SQUARE, ring((50, 5), (55, 5), (55, 10))],
+        r"^polygon hole 1 is not inside its outer ring$",
+        (53.75, 7.5),
+    ),
+    "hole across the shore": (
+        [SQUARE, ring((35, 5), (45, 5), (45, 10), (35, 10))],
+        r"^polygon hole 1 is not inside its outer ring$",
+        (42.5, 7.5),
+    ),
+    "hole on the shore": (
+        [SQUARE, ring((30, 5), (40, 5), (35, 10))],
+        r"^polygon hole 1 is not inside its outer ring$",
+        (40.0, 5.0),
+    ),
+    "holes overlapping": (
+        [
+            SQUARE,
+            ring((5, 5), (15, 5), (15, 15), (5, 15)),
+            ring((10, 10), (20, 10), (20, 20), (10, 20)),
+        ],
+        r"^polygon holes 1 and 2 overlap$",
+        (12.5, 12.5),
+    ),
+    "hole in a hole": (
+        [
+            SQUARE,
+            ring((5, 5), (25, 5), (25, 25), (5, 25)),
+            ring((10, 10), (20, 10), (20, 20), (10, 20)),
+        ],
+        r"^polygon holes 1 and 2 overlap$",
+        (15.0, 15.0),
+    ),
+    "hole crossing itself": (
+        [SQUARE, ring((5, 5), (15, 15), (15, 5), (5, 15))],
+        r"^polygon hole 1 crosses itself \(edges 1 and 3\)$",
+        (10.0, 10.0),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(INVALID))
+def test_invalid_areas_are_refused_saying_what_and_where(name: str) -> None:
+    rings, message, where = INVALID[name]
+    with pytest.raises(PlanningError, match=message) as caught:
+        validate_area(Area((Polygon(rings[0], tuple(rings[1:])),)))
+    assert "\n" not in str(caught.value)
+    if where is None:
+        assert caught.value.where is None
+    else:
+        assert caught.value.where == pytest.approx(where, abs=1e-6)
+
+
+def test_the_second_polygon_is_named() -> None:
+    bowtie = ring((50, 0), (60, 10), (60, 0), (50, 10))
+    with pytest.raises(PlanningError, match=r"^polygon 2 outer ring crosses itself"):
+        validate_area(Area((Polygon(SQUARE), Polygon(bowtie))))
+    with pytest.raises(PlanningError, match=r"^no polygon$"):
+        validate_area(Area(()))
 
 
 # --- files ---
