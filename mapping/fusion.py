@@ -734,6 +734,7 @@ class Fusion:
             t = sp.identity(jac.shape[1], format="csr") if to_state is None else to_state
             blocks = _pose_covariance_blocks(lu, sp.csr_matrix(t), pair_array)
         else:
+            del lu  # the windows' factors take its room
             blocks = self._windowed_blocks(jac, pair_array, margin_s, window_s)
         for m, (i, j) in enumerate(pair_array):
             dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
