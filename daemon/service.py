@@ -501,7 +501,7 @@ class Daemon:
                 "frames_mapped": frames["mapped"],
                 "rejected": frames["rejected"],
                 "seconds": round(time.monotonic() - started, 1),
-                "files": ["mosaic.tif", "mosaic.png", "trajectory.csv", "report.json"],
+                "files": report["files"],
             }
             log.info(
                 "survey mapped",

@@ -12,13 +12,15 @@ mission files.
 - ``planning.swath``: the sonar's usable swath, which spaces the lanes;
 - ``planning.lawnmower``: the lanes over the area and the path (the rules are in its doc);
 - ``planning.plan``: the planned path, its length and duration;
-- ``planning.coverage``: how much of the area the path maps.
+- ``planning.coverage``: how much of the area the path maps;
+- ``planning.gaps``: what a survey missed of the area, from the cells it saw well enough.
 
-The public names of all six are importable from here.
+The public names of all seven are importable from here.
 """
 
 from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
 from planning.coverage import MAPPING_LEGS, Coverage, coverage, swath_cover
+from planning.gaps import AreaCoverage, area_gaps, cells_geometry
 from planning.keepouts import Keepouts
 from planning.lawnmower import (
     ENTRY_CORNERS,
@@ -44,6 +46,7 @@ __all__ = [
     "MIN_RUN_M",
     "TURN_RATE_RAD_S",
     "Area",
+    "AreaCoverage",
     "Coverage",
     "Keepouts",
     "Leg",
@@ -53,8 +56,10 @@ __all__ = [
     "Run",
     "SurveyPlan",
     "Swath",
+    "area_gaps",
     "area_width",
     "candidate_bearings",
+    "cells_geometry",
     "choose_bearing",
     "clean_ring",
     "coverage",

@@ -159,12 +159,52 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class CoverageConfig:
+    """How well each seabed cell was seen (``mapping.coverage``; the result folder's
+    coverage.tif and, with the survey's area, gaps.geojson)."""
+
+    cell_m: float = 0.25
+    """Coverage cell side (metres), cells on the UTM grid (edges at multiples of it). A
+    quarter metre is a tenth of the fan's depth on the seabed and finer than the boat
+    keeps a lane (decimetres), yet a hectare is only 160,000 cells."""
+    min_passes: int = 1
+    """A cell meets the quality bar when this many separate passes saw it (2: every cell
+    from two lanes, as overlapping lanes are planned to)."""
+    min_range_m: float = 0.0
+    """Ground range from the sonar (metres) below which a frame does not count a cell;
+    0: the mapper's lit band decides (at 1 m altitude, 15 degrees tilt and a 20 degree
+    vertical beam it starts 2.25 m out on the boresight). Narrows the band, never widens
+    it: the mosaic holds nothing outside it."""
+    max_range_m: float = 0.0
+    """Ground range beyond which a frame does not count a cell (0: the lit band's end,
+    4.9 m at 5 m range and 1 m altitude)."""
+    min_grazing_deg: float = 10.0
+    """Smallest grazing angle, atan(altitude / ground range), at which a frame counts a
+    cell (degrees; 0: any). A Lambertian seabed's echo goes as sin^2 of the grazing angle
+    (10 degrees: 15 dB below normal incidence; 8: 17 dB; 5: 21 dB) and relief of height
+    z throws a shadow z / tan(grazing) long (a 10 cm quadrat bar or oyster clump: 0.57 m
+    at 10 degrees, 1.1 m at 5). At the nominal 1 m altitude and 5 m range the lit band
+    spans 24 degrees at its near edge to 11.5 at its far one, so 10 degrees keeps all of
+    it and cuts only where the image fades into shadow: beyond 2.8 m with 0.5 m of water
+    under the sonar, beyond 5.7 m at 1 m altitude with the range set longer."""
+    pass_gap_s: float = 8.0
+    """A frame begins a new pass over a cell when the last frame that saw it is more than
+    this earlier (seconds), as the loop closures tell passes apart
+    (``mapping.closures.ClosureParams.pass_gap_s``): a lane's pings see a cell for a few
+    seconds (2.7 m of fan depth at 0.5 m/s), the next lane comes back a minute later."""
+    min_gap_m2: float = 1.0
+    """The smallest uncovered part of the area reported as a gap (m²): 16 cells, a patch
+    a lane's fan sweeps over in two seconds; smaller ones still count as uncovered."""
+
+
+@dataclass(frozen=True)
 class SiteConfig:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sonar: SonarConfig = field(default_factory=SonarConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    coverage: CoverageConfig = field(default_factory=CoverageConfig)
 
 
 _CHOICES: dict[tuple[str, str], tuple[Any, ...]] = {
@@ -211,6 +251,17 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("mapping", "gnss_bias_tau_s"): (1.0, 1e5),
     ("mapping", "gnss_lag_s"): (0.0, 2.0),
     ("mapping", "sonar_latency_s"): (0.0, 2.0),
+    # Coverage cells from 5 cm (a few mosaic pixels; finer says nothing the registration's
+    # centimetres allow) to 5 m (a fan's width: coarser cells cannot tell a lane's edge).
+    ("coverage", "cell_m"): (0.05, 5.0),
+    ("coverage", "min_passes"): (1, 1000),
+    # Ground ranges within the sonar's longest range (0: the lit band's own).
+    ("coverage", "min_range_m"): (0.0, 120.0),
+    ("coverage", "max_range_m"): (0.0, 120.0),
+    ("coverage", "min_grazing_deg"): (0.0, 90.0),
+    # Twice the slowest ping interval (2 Hz) to a day.
+    ("coverage", "pass_gap_s"): (1.0, 86400.0),
+    ("coverage", "min_gap_m2"): (0.0, 1e8),
 }
 
 
@@ -334,7 +385,19 @@ def config_from_dict(data: dict[str, Any]) -> SiteConfig:
             known = ", ".join(f"[{n}]" for n in hints)
             raise SeamapError(f"config: unknown table [{_shown(name)[1:-1]}] (known: {known})")
         sections[name] = _section(name, hints[name], table)
-    return SiteConfig(**sections)
+    config = SiteConfig(**sections)
+    _check_together(config)
+    return config
+
+
+def _check_together(config: SiteConfig) -> None:
+    """Keys whose values must agree with each other."""
+    cover = config.coverage
+    if 0 < cover.max_range_m <= cover.min_range_m:
+        raise SeamapError(
+            f"config: [coverage] min_range_m = {cover.min_range_m:g} is not below "
+            f"max_range_m = {cover.max_range_m:g}"
+        )
 
 
 def checked_keys() -> dict[tuple[str, str], str]:
@@ -413,6 +476,7 @@ def dump_config(config: SiteConfig) -> str:
 __all__ = [
     "HEADING_SOURCES",
     "IMU_SOURCES",
+    "CoverageConfig",
     "DaemonConfig",
     "MappingConfig",
     "MavlinkConfig",

@@ -208,3 +208,16 @@ def located_message(exc: PlanningError, frame: LocalFrame) -> str:
         return str(exc)
     lat, lon = frame.to_latlon(exc.where[0], exc.where[1])
     return f"{exc} near {float(lat):.7f},{float(lon):.7f}"
+
+
+def area_in(survey: SurveyArea, frame: LocalFrame) -> Area:
+    """The area in another local frame (a survey's, anchored at its first fix, perhaps in
+    the next UTM zone): its WGS84 vertices projected afresh, holes kept."""
+    polygons = []
+    for rings in survey.polygons_latlon:
+        metric = []
+        for ring in rings:
+            x, y = frame.to_local(ring[:, 0], ring[:, 1])
+            metric.append(np.column_stack([x, y]))
+        polygons.append(Polygon(metric[0], tuple(metric[1:])))
+    return Area(tuple(polygons))

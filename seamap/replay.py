@@ -2,7 +2,9 @@
 
 The glue between the drivers (log readers), the core (``mapping.pipeline``) and the result
 writers; the same core the daemon runs live. A survey recorded in several segments (one
-per daemon start: ``sonar-NNN.oculus``, ``nav-NNN.tlog``) is replayed as one survey.
+per daemon start: ``sonar-NNN.oculus``, ``nav-NNN.tlog``) is replayed as one survey. The
+survey's coverage goes with the mosaic (``seamap.coverage``), and its gaps when its area
+is given.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 from daemon.recording import segments
 from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
+from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
@@ -29,8 +32,10 @@ from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
 from mapping.tiles import TileSpill
 from seamap.config import MappingConfig, SiteConfig, SonarConfig, load_config
+from seamap.coverage import AreaSource, write_coverage
 from seamap.errors import SeamapError
 from seamap.memory import return_large_blocks
+from seamap.plan_area import read_area
 from seamap.results import write_geotiff, write_png, write_report, write_trajectory
 from seamap.tilespill import DiskSpill
 
@@ -206,13 +211,16 @@ def replay(
     truth: Path | None = None,
     params: PipelineParams | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    area: Path | None = None,
 ) -> dict[str, Any]:
     """Map the logs and write the result folder; returns the report.
 
     ``sonar`` and ``nav`` are each one log or the segments of one survey in time order
     (Oculus logs; .tlog segments, or one .tlog or DataFlash .bin). ``config``, when given,
-    is used instead of loading ``config_path`` (which may then be None). Bad input ends
-    in one SeamapError naming the files.
+    is used instead of loading ``config_path`` (which may then be None). ``area``: the
+    survey's area (GeoJSON or a lat,lon list, ``seamap.plan_area``), read before any
+    mapping: its covered fraction and gaps go into the result folder. Bad input ends in
+    one SeamapError naming the files.
     """
     started = time.perf_counter()
     return_large_blocks()  # the tiles' stacks go back to the system when freed
@@ -220,6 +228,7 @@ def replay(
     nav_paths = _log_paths(nav, "navigation log")
     sonar_names, nav_names = _names(sonar_paths), _names(nav_paths)
     config = config if config is not None else load_config(config_path)
+    survey_area = AreaSource(area, read_area(area)) if area is not None else None
     params = params or pipeline_params(config)
     samples, nav_info = read_navigation(nav_paths, config)
     skipped: dict[str, int] = {}
@@ -267,8 +276,14 @@ def replay(
     write_geotiff(out / "mosaic.tif", image, west, north, params.mosaic_res_m, epsg)
     write_png(out / "mosaic.png", image)
     rows = write_trajectory(out / "trajectory.csv", result.frame, result.times, result.poses)
+    t0 = time.perf_counter()
+    # The sonar's fan as the mapper kept it, from the first ping (as the loop closures do).
+    fan = SonarFan.of_ping(next(iter(pings())), mount, params.preprocess)
+    coverage, coverage_files = write_coverage(out, result, fan, config.coverage, survey_area)
+    coverage_s = time.perf_counter() - t0
     timings = {k: round(v, 4) for k, v in result.timings.items()}
     timings["render"] = round(render_s, 4)
+    timings["coverage"] = round(coverage_s, 4)
     timings["total"] = round(time.perf_counter() - started, 4)
     n = max(result.frames_read, 1)
     report: dict[str, Any] = {
@@ -295,6 +310,8 @@ def replay(
             "tiles": len(result.mosaic.all_keys()),
         },
         "trajectory_rows": rows,
+        "coverage": coverage,
+        "files": ["mosaic.tif", "mosaic.png", "trajectory.csv", *coverage_files, "report.json"],
         "timings_s": timings,
         "seconds_per_frame": {k: round(v / n, 6) for k, v in timings.items()},
         "settings": {"config": asdict(config), "pipeline": asdict(params)},
@@ -341,9 +358,11 @@ def replay_survey(
     mode: str = "single-stage",
     truth: Path | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    area: Path | None = None,
 ) -> dict[str, Any]:
     """Replay every segment of a recorded survey folder (``sonar-NNN.oculus`` and
-    ``nav-NNN.tlog``, in segment order) into ``out``; returns the report.
+    ``nav-NNN.tlog``, in segment order) into ``out``; returns the report. ``area``: the
+    survey's area file, for its gaps (``replay``).
 
     Empty segments (a daemon run that heard nothing from that device) are left out.
     SeamapError naming the folder if it is missing or holds no sonar or no nav segment, or
@@ -361,7 +380,9 @@ def replay_survey(
     sonar = [path for path in sonar if _size(path) > V1_FILE_HEADER_SIZE]
     if not sonar:
         raise SeamapError(f"{survey_dir}: no sonar message was recorded (sonar segments empty)")
-    return replay(sonar, nav, None, mode, out, config=config, truth=truth, progress=progress)
+    return replay(
+        sonar, nav, None, mode, out, config=config, truth=truth, progress=progress, area=area
+    )
 
 
 def _size(path: Path) -> int:

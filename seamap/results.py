@@ -1,4 +1,5 @@
-"""The contract's result folder: mosaic.tif, mosaic.png, trajectory.csv, report.json.
+"""The contract's result folder: mosaic.tif, mosaic.png, trajectory.csv, report.json,
+coverage.tif, coverage.png and, when the survey's area is known, gaps.geojson.
 
 Written by replay, by the daemon at survey end and by the demo. Files are written to a
 temporary name and renamed, so a reader never sees half a file.
@@ -19,8 +20,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 import rasterio
+import shapely
 from rasterio.transform import from_origin
+from shapely.geometry.polygon import orient
 
+from mapping.coverage import CoverageGrid
 from mapping.geo import LocalFrame
 
 
@@ -55,6 +59,90 @@ def write_geotiff(
     with rasterio.open(tmp, "w", **profile) as dataset:
         dataset.write(image, 1)
     os.replace(tmp, path)
+
+
+COVERAGE_BANDS = ("passes", "hits", "meets_bar")
+"""coverage.tif's bands, in order."""
+
+
+def write_coverage_tif(path: Path, grid: CoverageGrid, epsg: int, min_passes: int) -> None:
+    """Three-band uint16 north-up GeoTIFF on the grid's UTM cells: passes, hits (both
+    saturating at 65535) and 1 where passes >= ``min_passes`` else 0. GeoTIFF bands share
+    one type, so the bar is uint16 too. No nodata: every cell holds a count, 0 = not
+    seen. The bar, the cell and the bands' names are in the file's tags."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    rows, cols = grid.passes.shape
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "height": max(rows, 1),
+        "width": max(cols, 1),
+        "count": len(COVERAGE_BANDS),
+        "dtype": "uint16",
+        "crs": f"EPSG:{epsg}",
+        "transform": from_origin(grid.west_m, grid.north_m, grid.cell_m, grid.cell_m),
+        "compress": "deflate",
+    }
+    if rows >= 256 and cols >= 256:
+        profile.update(tiled=True, blockxsize=256, blockysize=256)
+    bands = np.zeros((len(COVERAGE_BANDS), max(rows, 1), max(cols, 1)), np.uint16)
+    bands[0, :rows, :cols] = grid.passes
+    bands[1, :rows, :cols] = grid.hits
+    bands[2, :rows, :cols] = grid.meets(min_passes)
+    with rasterio.open(tmp, "w", **profile) as dataset:
+        dataset.write(bands)
+        for index, name in enumerate(COVERAGE_BANDS, start=1):
+            dataset.set_band_description(index, name)
+        dataset.update_tags(min_passes=str(min_passes), cell_m=repr(grid.cell_m))
+    os.replace(tmp, path)
+
+
+COVERAGE_COLOURS = {
+    "below_bar": (43, 142, 242),  # BGR: orange, seen by fewer passes than the bar
+    "at_bar": (106, 217, 166),  # light green: exactly the bar's passes
+    "above_bar": (65, 150, 26),  # green: more passes than the bar
+}
+
+
+def write_coverage_png(path: Path, grid: CoverageGrid, min_passes: int) -> None:
+    """The coverage for eyes, one pixel a cell, north-up: transparent where no pass saw
+    the cell, orange below the bar, light green at it, green above it."""
+    passes = grid.passes
+    image = np.zeros((*passes.shape, 4), np.uint8)
+    seen = passes > 0
+    for name, where in (
+        ("below_bar", seen & (passes < min_passes)),
+        ("at_bar", passes == min_passes),
+        ("above_bar", passes > min_passes),
+    ):
+        image[where] = (*COVERAGE_COLOURS[name], 255)
+    write_png(path, image if image.size else np.zeros((1, 1, 4), np.uint8))
+
+
+def write_gaps(path: Path, gaps: tuple[shapely.Polygon, ...], frame: LocalFrame) -> None:
+    """The gaps (local metres) as a GeoJSON FeatureCollection of WGS84 polygons (RFC 7946:
+    [longitude, latitude], outer rings counterclockwise, holes clockwise), each with its
+    ``id`` (1 the largest) and ``area_m2``."""
+    features = []
+    for number, gap in enumerate(gaps, start=1):
+        # UTM keeps a ring's turning sense: oriented in metres, oriented in degrees.
+        oriented = orient(gap, 1.0)
+        coordinates = []
+        for ring in (oriented.exterior, *oriented.interiors):
+            xy = np.asarray(ring.coords)
+            lat, lon = frame.to_latlon(xy[:, 0], xy[:, 1])
+            # 1e-8 degrees is a millimetre: far finer than the cells.
+            coordinates.append(np.round(np.column_stack([lon, lat]), 8).tolist())
+        features.append(
+            {
+                "type": "Feature",
+                "id": number,
+                "properties": {"id": number, "area_m2": round(float(gap.area), 3)},
+                "geometry": {"type": "Polygon", "coordinates": coordinates},
+            }
+        )
+    with _atomic(path) as stream:
+        json.dump({"type": "FeatureCollection", "features": features}, stream)
+        stream.write("\n")
 
 
 def write_png(path: Path, image: npt.NDArray[np.uint8]) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -103,6 +104,39 @@ def test_wrong_values_are_errors_naming_the_key(tmp_path: Path, text: str, fragm
         load_config(write(tmp_path, text))
 
 
+@pytest.mark.parametrize(
+    ("key", "value", "fragment"),
+    [
+        ("cell_m", 0.0, "cell_m = 0.0 is outside 0.05..5"),
+        ("cell_m", 10, "cell_m = 10 is outside 0.05..5"),
+        ("min_passes", 0, "min_passes = 0 is outside 1..1000"),
+        ("min_passes", 1.5, "min_passes must be an integer"),
+        ("min_range_m", -1.0, "min_range_m = -1.0 is outside 0..120"),
+        ("max_range_m", 500.0, "max_range_m = 500.0 is outside 0..120"),
+        ("min_grazing_deg", 95.0, "min_grazing_deg = 95.0 is outside 0..90"),
+        ("pass_gap_s", 0.2, "pass_gap_s = 0.2 is outside 1..86400"),
+        ("min_gap_m2", -0.5, "min_gap_m2 = -0.5 is outside 0..1e+08"),
+        ("min_gap_m2", "1", "min_gap_m2 must be a number"),
+    ],
+)
+def test_coverage_keys_are_checked_where_the_others_are(
+    key: str, value: object, fragment: str
+) -> None:
+    expected = "^" + re.escape(f"config: [coverage] {fragment}")
+    with pytest.raises(SeamapError, match=expected) as error:
+        config_from_dict({"coverage": {key: value}})
+    assert "\n" not in str(error.value)
+
+
+def test_coverage_ranges_must_make_a_band() -> None:
+    with pytest.raises(SeamapError, match=r"min_range_m = 4 is not below max_range_m = 3"):
+        config_from_dict({"coverage": {"min_range_m": 4.0, "max_range_m": 3.0}})
+    band = config_from_dict({"coverage": {"min_range_m": 1.0, "max_range_m": 3.0}}).coverage
+    assert (band.min_range_m, band.max_range_m) == (1.0, 3.0)
+    # 0 is the mapper's own band: any near limit goes with it.
+    assert config_from_dict({"coverage": {"min_range_m": 4.0}}).coverage.max_range_m == 0.0
+
+
 def test_malformed_and_missing_files_are_one_line_errors(tmp_path: Path) -> None:
     with pytest.raises(SeamapError, match="not valid TOML"):
         load_config(write(tmp_path, "[sonar\n"))
@@ -200,9 +234,9 @@ def test_a_value_within_its_range_or_choices_is_taken(
 
 
 _TOML_ATOMS = st.sampled_from(
-    ["[daemon]", "[sonar]", "[mapping]", "[zenoh]", "[mavlink]", "[x]", "=", "\n", '"', "'",
-     "[", "]", "{", "}", ",", "#", "true", "nan", "inf", "-", "1e999", "0x1F", "tilt_deg",
-     "listen", "mosaic_res_m", "vehicle", " ", "\\", "\u00e9", "[[a]]", "a.b", "\x00"]
+    ["[daemon]", "[sonar]", "[mapping]", "[zenoh]", "[mavlink]", "[coverage]", "[x]", "=",
+     "\n", '"', "'", "[", "]", "{", "}", ",", "#", "true", "nan", "inf", "-", "1e999", "0x1F",
+     "tilt_deg", "listen", "mosaic_res_m", "vehicle", " ", "\\", "\u00e9", "[[a]]", "a.b", "\x00"]
 )  # fmt: skip
 _VALUES = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
@@ -230,7 +264,7 @@ def test_any_text_as_a_site_file_is_a_config_or_one_seamap_error(
 @pytest.mark.fuzz
 @fuzz(300)
 @given(
-    table=st.sampled_from(["daemon", "sonar", "mavlink", "zenoh", "mapping", "other"]),
+    table=st.sampled_from(["daemon", "sonar", "mavlink", "zenoh", "mapping", "coverage", "other"]),
     values=st.dictionaries(
         st.one_of(st.sampled_from([k for _, k in KEYS]), st.text(max_size=10)), _VALUES,
         max_size=4,

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+import shapely
+from pyproj import Transformer
 
 from mapping.metrics import locate_quadrats, quadrat_spacing_error
 from seamap.cli import main
@@ -21,7 +23,32 @@ from tools.sim import simulate
 def survey(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("survey")
     simulate("quadrats", 2, folder, max_pings=220, n_beams=256)
+    write_area(folder)
     return folder
+
+
+AREA_MARGIN_M = 8.0
+"""The area reaches this far beyond the sonar's track: wider than the fan sees (4.5 m)."""
+
+
+def write_area(folder: Path) -> None:
+    """area.geojson: the rectangle (grid-aligned in UTM) round the sonar's true track,
+    ``AREA_MARGIN_M`` wider on every side, with a keep-out hole near one corner."""
+    truth = json.loads((folder / "truth.json").read_text())
+    east = np.array([p["sonar_east"] for p in truth["pings"]])
+    north = np.array([p["sonar_north"] for p in truth["pings"]])
+    w, s = east.min() - AREA_MARGIN_M, north.min() - AREA_MARGIN_M
+    e, n = east.max() + AREA_MARGIN_M, north.max() + AREA_MARGIN_M
+    to_wgs84 = Transformer.from_crs(truth["site"]["epsg"], 4326, always_xy=True)
+
+    def ring(points: list[tuple[float, float]]) -> list[list[float]]:
+        lon, lat = to_wgs84.transform(*np.array(points + points[:1]).T)
+        return np.column_stack([lon, lat]).tolist()
+
+    outer = ring([(w, s), (e, s), (e, n), (w, n)])
+    hole = ring([(w + 1, s + 1), (w + 1, s + 3), (w + 3, s + 3), (w + 3, s + 1)])
+    geometry = {"type": "Polygon", "coordinates": [outer, hole]}
+    (folder / "area.geojson").write_text(json.dumps({"type": "Feature", "geometry": geometry}))
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +62,7 @@ def result(survey: Path) -> Path:
             "--config", str(survey / "site.toml"),
             "--out", str(out),
             "--truth", str(survey / "truth.json"),
+            "--area", str(survey / "area.geojson"),
         ]
     )  # fmt: skip
     assert status == 0
@@ -130,3 +158,106 @@ def test_bad_inputs_end_in_one_line(
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "junk.tlog" in err[0]
+
+
+def test_coverage_is_on_the_mosaics_grid_where_the_mosaic_is(result: Path) -> None:
+    report = json.loads((result / "report.json").read_text())
+    coverage = report["coverage"]
+    with rasterio.open(result / "mosaic.tif") as mosaic:
+        epsg, image, m = mosaic.crs.to_epsg(), mosaic.read(1), mosaic.transform
+    with rasterio.open(result / "coverage.tif") as raster:
+        assert raster.count == 3 and set(raster.dtypes) == {"uint16"}
+        assert raster.crs.to_epsg() == epsg
+        assert raster.descriptions == ("passes", "hits", "meets_bar")
+        t = raster.transform
+        passes, hits, bar = raster.read()
+    cell = coverage["cell_m"]
+    assert t.b == 0 and t.d == 0 and t.a == -t.e == cell == 0.25  # north-up, square
+    for edge in (t.c, t.f):  # on the UTM grid of the cell size
+        assert edge / cell == pytest.approx(round(edge / cell), abs=1e-6)
+    assert np.array_equal(bar, passes >= coverage["min_passes"])
+    assert np.all(hits >= passes)
+    assert coverage["covered_m2"] == pytest.approx(bar.sum() * cell**2)
+    # One lane of 44 s: a single pass, a swath about 8.7 m wide and 20 m long.
+    assert passes.max() == 1 and 100 < coverage["covered_m2"] < 400
+    # Where the coverage says seen, the mosaic holds data.
+    rows, cols = np.nonzero(bar)
+    east, north = t.c + (cols + 0.5) * cell, t.f - (rows + 0.5) * cell
+    u = np.floor((east - m.c) / m.a).astype(int)
+    v = np.floor((north - m.f) / m.e).astype(int)
+    inside = (u >= 0) & (u < image.shape[1]) & (v >= 0) & (v < image.shape[0])
+    assert inside.mean() > 0.99
+    assert (image[v[inside], u[inside]] > 0).mean() > 0.95
+    assert (result / "coverage.png").stat().st_size > 100
+    for name in ("coverage.tif", "coverage.png", "gaps.geojson", "mosaic.tif"):
+        assert name in report["files"] and (result / name).exists()
+
+
+def test_the_areas_gaps_are_what_the_lane_left(survey: Path, result: Path) -> None:
+    report = json.loads((result / "report.json").read_text())
+    area = report["coverage"]["area"]
+    gaps = json.loads((result / "gaps.geojson").read_text())
+    assert gaps["type"] == "FeatureCollection"
+    features = gaps["features"]
+    assert len(features) == area["gaps"] >= 1
+    assert [f["properties"]["id"] for f in features] == list(range(1, len(features) + 1))
+    sizes = [f["properties"]["area_m2"] for f in features]
+    assert sizes == sorted(sizes, reverse=True) and min(sizes) >= 1.0
+    assert sum(sizes) == pytest.approx(area["gaps_m2"], abs=0.01 * len(sizes))
+    outline = json.loads((survey / "area.geojson").read_text())["geometry"]
+    region = shapely.geometry.shape(outline)
+    keepout = shapely.Polygon(outline["coordinates"][1])
+    polygons = [shapely.geometry.shape(f["geometry"]) for f in features]
+    islands = []
+    for polygon in polygons:
+        assert isinstance(polygon, shapely.Polygon)
+        assert polygon.is_valid and polygon.exterior.is_ccw  # RFC 7946's right-hand rule
+        assert not any(ring.is_ccw for ring in polygon.interiors)
+        assert region.buffer(1e-7).contains(polygon)  # lon/lat, inside the area
+        # The keep-out near the corner is not a gap: the gap goes round it (to a millimetre).
+        assert shapely.area(shapely.intersection(polygon, keepout)) < 1e-3 * keepout.area
+        islands += [
+            ring
+            for ring in polygon.interiors
+            if not keepout.buffer(1e-7).contains(shapely.Polygon(ring))
+        ]
+    # The lane's swath lies inside the area: an island in the one gap round it.
+    assert len(islands) == 1
+    # The area is the track's rectangle 8 m wider on every side: the lane sees its middle.
+    assert 0.05 < area["covered_fraction"] < 0.6
+    assert area["covered_m2"] + area["gaps_m2"] == pytest.approx(area["area_m2"], rel=0.02)
+    assert area["covered_m2"] <= report["coverage"]["covered_m2"] + 1e-6
+
+
+@pytest.mark.parametrize(
+    ("setting", "fragment"),
+    [
+        ("[coverage]\ncell_m = 0\n", "[coverage] cell_m = 0 is outside 0.05..5"),
+        ("[coverage]\nmin_grazing_deg = -1\n", "[coverage] min_grazing_deg = -1 is outside"),
+        ("[coverage]\nmin_range_m = 3\nmax_range_m = 2\n", "min_range_m = 3 is not below"),
+    ],
+)
+def test_a_bad_coverage_setting_ends_in_one_line(
+    tmp_path: Path, survey: Path, capsys: pytest.CaptureFixture[str], setting: str, fragment: str
+) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text(setting)
+    args = ["replay", "--sonar", str(survey / "sonar.oculus"), "--nav", str(survey / "nav.tlog"),
+            "--config", str(site), "--out", str(tmp_path / "o")]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0] and str(site) in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_bad_area_ends_in_one_line_before_mapping(
+    tmp_path: Path, survey: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    area = tmp_path / "area.geojson"
+    area.write_text('{"type": "Point", "coordinates": [5.9, 43.1]}')
+    args = ["replay", "--sonar", str(survey / "sonar.oculus"), "--nav", str(survey / "nav.tlog"),
+            "--area", str(area), "--out", str(tmp_path / "o")]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "area.geojson" in err[0] and "no polygon" in err[0]
+    assert not (tmp_path / "o").exists()

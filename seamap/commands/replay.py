@@ -16,7 +16,10 @@ MODES = ("single-stage", "two-stage", "fmt-only", "gps-only", "streaming")
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "replay",
-        help="map recorded logs: mosaic.tif, mosaic.png, trajectory.csv, report.json",
+        help=(
+            "map recorded logs: mosaic.tif, mosaic.png, trajectory.csv, coverage.tif, "
+            "coverage.png, report.json (and gaps.geojson with --area)"
+        ),
         description=(
             "Run the mapping pipeline over a recorded Oculus sonar log and a MAVLink log "
             "(or over the segments of a survey, in order) and write the result folder."
@@ -49,6 +52,16 @@ def register(subparsers: Any) -> None:
         type=Path,
         default=None,
         help="a simulator's truth.json: add accuracy to the report",
+    )
+    parser.add_argument(
+        "--area",
+        type=Path,
+        default=None,
+        metavar="AREA.geojson",
+        help=(
+            "the survey's area (GeoJSON polygon, holes kept out, or a lat,lon list): its "
+            "covered fraction in the report and what was missed in gaps.geojson"
+        ),
     )
     parser.set_defaults(handler=run)
 
@@ -101,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
                 mode=args.mode,
                 truth=args.truth,
                 progress=progress,
+                area=args.area,
             )
         else:
             report = replay(
@@ -111,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                 args.out,
                 truth=args.truth,
                 progress=progress,
+                area=args.area,
             )
     finally:
         progress.done()
@@ -121,6 +136,15 @@ def run(args: argparse.Namespace) -> int:
     )
     for reason, count in sorted(frames["rejected"].items()):
         print(f"  rejected {count}: {reason}")
+    coverage = report["coverage"]
+    line = f"  coverage: {coverage['covered_m2']:.0f} m² seen by {coverage['min_passes']}+ passes"
+    if "area" in coverage:
+        area = coverage["area"]
+        line += (
+            f"; {100 * area['covered_fraction']:.1f} % of the area, "
+            f"{area['gaps']} gaps of {area['gaps_m2']:.0f} m²"
+        )
+    print(line)
     if "accuracy" in report:
         accuracy = report["accuracy"]
         ate = accuracy["trajectory"]["rmse"]

@@ -137,8 +137,13 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
     code, log = asyncio.run(main())
     assert code == 0, log
     assert "rerunning an interrupted survey-end pass" in log
-    for name in ("mosaic.tif", "mosaic.png", "trajectory.csv", "report.json"):
+    files = ["mosaic.tif", "mosaic.png", "trajectory.csv", "coverage.tif", "coverage.png"]
+    for name in files:
         assert (folder / name).is_file()
+    assert json.loads((folder / "survey.json").read_text())["result"]["files"] == [
+        *files,
+        "report.json",
+    ]
     # It was not resumed as a recording: no new segment.
     assert not (folder / "sonar-003.oculus").exists()
     report = json.loads((folder / "report.json").read_text())

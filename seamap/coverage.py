@@ -1,0 +1,121 @@
+"""The result folder's coverage: how well each seabed cell was seen (coverage.tif,
+coverage.png) and, when the survey's area is known, what it missed (gaps.geojson), with
+what report.json says of them.
+
+Glue between a mapped survey (``mapping.pipeline.SurveyResult``: vehicle poses in its
+local frame), the coverage core (``mapping.coverage``), the gaps of an area
+(``planning.gaps``) and the file writers (``seamap.results``). Degrees and the file
+names live here, at the edge; the core takes radians and metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.coverage import CoverageGrid, CoverageParams, SeabedCoverage, SonarFan, footprint
+from mapping.pipeline import SurveyResult
+from planning.gaps import area_gaps, cells_geometry
+from seamap.config import CoverageConfig
+from seamap.plan_area import SurveyArea, area_in
+from seamap.results import write_coverage_png, write_coverage_tif, write_gaps
+
+COVERAGE_TIF = "coverage.tif"
+COVERAGE_PNG = "coverage.png"
+GAPS_GEOJSON = "gaps.geojson"
+
+
+def coverage_params(config: CoverageConfig) -> CoverageParams:
+    """The core's settings from the site config's [coverage] table."""
+    return CoverageParams(
+        cell_m=config.cell_m,
+        min_passes=config.min_passes,
+        min_range_m=config.min_range_m,
+        max_range_m=config.max_range_m,
+        min_grazing_rad=math.radians(config.min_grazing_deg),
+        pass_gap_s=config.pass_gap_s,
+    )
+
+
+def survey_coverage(result: SurveyResult, fan: SonarFan, params: CoverageParams) -> CoverageGrid:
+    """The coverage raster of a survey's mapped frames, on its UTM grid."""
+    coverage = SeabedCoverage(
+        result.mount,
+        fan,
+        params,
+        anchor_e=result.frame.anchor_e,
+        anchor_n=result.frame.anchor_n,
+    )
+    mapped = result.mapped
+    coverage.add_frames(result.times[mapped], result.poses[mapped])
+    return coverage.grid()
+
+
+@dataclass(frozen=True)
+class AreaSource:
+    """A survey area as read (``seamap.plan_area.read_area``) and the file it came from."""
+
+    path: Path
+    area: SurveyArea
+
+
+def write_coverage(
+    out: Path,
+    result: SurveyResult,
+    fan: SonarFan,
+    config: CoverageConfig,
+    area: AreaSource | None = None,
+) -> tuple[dict[str, Any], list[str]]:
+    """Write coverage.tif, coverage.png and, with an area, gaps.geojson into ``out``
+    (without one, a gaps.geojson left by an earlier run goes: it would not be this
+    survey's); returns report.json's "coverage" object and the files written."""
+    params = coverage_params(config)
+    grid = survey_coverage(result, fan, params)
+    epsg = result.frame.epsg
+    write_coverage_tif(out / COVERAGE_TIF, grid, epsg, params.min_passes)
+    write_coverage_png(out / COVERAGE_PNG, grid, params.min_passes)
+    files = [COVERAGE_TIF, COVERAGE_PNG]
+    band = footprint(fan, params, result.mount.altitude_m)  # at the mount's altitude
+    seen = grid.passes > 0
+    report: dict[str, Any] = {
+        "cell_m": params.cell_m,
+        "min_passes": params.min_passes,
+        "pass_gap_s": params.pass_gap_s,
+        "min_grazing_deg": config.min_grazing_deg,
+        "half_fan_deg": round(math.degrees(fan.half_angle_rad), 3),
+        "ground_range_m": [round(band.rho_min_m, 3), round(band.rho_max_m, 3)],
+        "forward_min_m": round(band.forward_min_m, 3),
+        "cells_seen": int(np.count_nonzero(seen)),
+        "seen_m2": round(float(np.count_nonzero(seen)) * params.cell_m**2, 3),
+        "covered_m2": round(grid.covered_m2(params.min_passes), 3),
+        "max_passes": int(grid.passes.max()) if grid.passes.size else 0,
+        "crs": {"epsg": epsg, "west": grid.west_m, "north": grid.north_m},
+    }
+    gaps_path = out / GAPS_GEOJSON
+    if area is None:
+        gaps_path.unlink(missing_ok=True)
+        return report, files
+    frame = result.frame
+    covered = cells_geometry(
+        grid.meets(params.min_passes),
+        grid.west_m - frame.anchor_e,
+        grid.north_m - frame.anchor_n,
+        grid.cell_m,
+    )
+    found = area_gaps(area_in(area.area, frame), covered, config.min_gap_m2)
+    write_gaps(gaps_path, found.gaps, frame)
+    files.append(GAPS_GEOJSON)
+    report["area"] = {
+        "file": str(area.path),
+        "area_m2": round(found.area_m2, 3),
+        "covered_m2": round(found.covered_m2, 3),
+        "covered_fraction": round(found.fraction, 5),
+        "gaps": len(found.gaps),
+        "gaps_m2": round(found.gaps_m2, 3),
+        "min_gap_m2": config.min_gap_m2,
+    }
+    return report, files
