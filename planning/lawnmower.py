@@ -46,6 +46,10 @@ all that keep-outs close in) is mapped only as far as the swath reaches into it 
 outside. The path is planned lane by lane: the runs of lanes into a bay are reached one
 after another, each by a way round (no decomposition of the area into cells, each swept
 on its own).
+
+The lanes sweep any region, not only a whole area: ``planning.replan`` sweeps the gaps a
+survey left (each grown a little and cut to the area) with these rules and its area's
+keep-outs, the loops round keep-outs judged by what they map of the gaps.
 """
 
 from __future__ import annotations
@@ -71,6 +75,11 @@ LOOP_MIN_M2 = 0.05
 """Once round a keep-out is driven when it maps more of the area than this (m²) that the
 rest of the path leaves unmapped; less is the swath's discs drawn as polygons, not water."""
 ENTRY_CORNERS = ("nw", "ne", "sw", "se", "auto")
+
+Sweepable = Area | shapely.Geometry
+"""What the lanes sweep: a survey area, or any shapely (Multi)Polygon in the same local
+metres (a gap of a survey grown and cut to its area, ``planning.replan``), whose keep-outs
+are then given."""
 
 # A lane run: its start and end (along the lane, lead-ins included), where it enters and
 # leaves the area, and whether the start and end were made by a keep-out.
@@ -126,18 +135,31 @@ def _union(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
     return out
 
 
-def area_width(area: Area, bearing_rad: float) -> float:
+def _geometry(area: Sweepable) -> shapely.Geometry:
+    return area.geometry if isinstance(area, Area) else area
+
+
+def _outline_points(area: Sweepable) -> FloatArray:
+    """(n, 2) vertices whose extremes are the region's: an area's outer rings, or every
+    vertex of a geometry (its interior rings lie inside)."""
+    if isinstance(area, Area):
+        return np.concatenate([p.outer for p in area.polygons])
+    points: FloatArray = shapely.get_coordinates(area)
+    return points
+
+
+def area_width(area: Sweepable, bearing_rad: float) -> float:
     """Width (m) of the area across lanes along ``bearing_rad``."""
     _, across = _axes(bearing_rad)
-    v = np.concatenate([p.outer for p in area.polygons]) @ across
+    v = _outline_points(area) @ across
     return float(v.max() - v.min())
 
 
-def lane_offsets(area: Area, bearing_rad: float, spacing_m: float) -> FloatArray:
+def lane_offsets(area: Sweepable, bearing_rad: float, spacing_m: float) -> FloatArray:
     """Across offsets (m, to the right of the lane direction) of the lanes: ceil(width /
     spacing) lanes, centred, so the outermost lie at most half a spacing inside."""
     _, across = _axes(bearing_rad)
-    v = np.concatenate([p.outer for p in area.polygons]) @ across
+    v = _outline_points(area) @ across
     width = float(v.max() - v.min())
     n = max(1, math.ceil(width / spacing_m - 1e-9))
     if n > MAX_LANES:
@@ -150,7 +172,7 @@ def lane_offsets(area: Area, bearing_rad: float, spacing_m: float) -> FloatArray
 
 
 def _lane_runs(
-    area: Area,
+    area: Sweepable,
     keepouts: Keepouts,
     *,
     bearing_rad: float,
@@ -163,7 +185,7 @@ def _lane_runs(
     ``MIN_RUN_M`` over the area."""
     along, across = _axes(bearing_rad)
     offsets = lane_offsets(area, bearing_rad, spacing_m)
-    free = shapely.difference(area.geometry, keepouts.geometry)
+    free = shapely.difference(_geometry(area), keepouts.geometry)
     inside = _lane_intervals(free, along, across, offsets)
     blocked = _lane_intervals(keepouts.geometry, along, across, offsets)
     order = range(len(offsets) - 1, -1, -1) if reverse_sweep else range(len(offsets))
@@ -198,7 +220,7 @@ def _lane_runs(
 # --- the path ---
 
 
-def _connect(start: Point, end: Point, kind: LegKind, lane: int, keepouts: Keepouts) -> list[Leg]:
+def connect(start: Point, end: Point, kind: LegKind, lane: int, keepouts: Keepouts) -> list[Leg]:
     """Legs from start to end: one straight leg of ``kind``, or the way round the
     keep-outs in between (detours)."""
     bends = keepouts.route(start, end)
@@ -211,16 +233,20 @@ def _connect(start: Point, end: Point, kind: LegKind, lane: int, keepouts: Keepo
     ]
 
 
-def _once_round(legs: list[Leg], area: Area, keepouts: Keepouts, half_width_m: float) -> list[Leg]:
-    """The path with a loop round each keep-out where the boat first meets it, for the
-    keep-outs whose loop maps more than ``LOOP_MIN_M2`` the path leaves unmapped."""
+def once_round(
+    legs: list[Leg], area: Sweepable, keepouts: Keepouts, half_width_m: float
+) -> list[Leg]:
+    """The path with a loop round each keep-out where the boat first meets it (at the end
+    of a leg), for the keep-outs whose loop maps more than ``LOOP_MIN_M2`` of ``area`` the
+    path leaves unmapped (the module doc's *once round*)."""
     if not legs or not keepouts.polygons:
         return legs
     first: dict[int, int] = {}  # keep-out: the leg at whose end the boat first meets it
     for i, k in enumerate(keepouts.at(np.array([leg.end for leg in legs]))):
         if k is not None and k not in first:
             first[k] = i
-    covered = shapely.intersection(swath_cover(legs, half_width_m), area.geometry)
+    region = _geometry(area)
+    covered = shapely.intersection(swath_cover(legs, half_width_m), region)
     loops: dict[int, list[Leg]] = {}
     for k, i in sorted(first.items(), key=lambda item: item[1]):
         here = legs[i].end
@@ -231,7 +257,7 @@ def _once_round(legs: list[Leg], area: Area, keepouts: Keepouts, half_width_m: f
             for a, b in itertools.pairwise(points)
             if math.dist(a, b) > EPS_M
         ]
-        mapped = shapely.intersection(swath_cover(loop, half_width_m), area.geometry)
+        mapped = shapely.intersection(swath_cover(loop, half_width_m), region)
         if shapely.area(shapely.difference(mapped, covered)) > LOOP_MIN_M2:
             loops[i] = loop
             covered = shapely.union(covered, mapped)
@@ -239,7 +265,7 @@ def _once_round(legs: list[Leg], area: Area, keepouts: Keepouts, half_width_m: f
 
 
 def plan_path(
-    area: Area,
+    area: Sweepable,
     *,
     bearing_rad: float,
     spacing_m: float,
@@ -249,6 +275,7 @@ def plan_path(
     reverse_first: bool = False,
     half_width_m: float | None = None,
     keepouts: Keepouts | None = None,
+    loops: bool = True,
 ) -> SurveyPlan:
     """The lawnmower over ``area`` with lanes along ``bearing_rad`` (see module doc).
 
@@ -256,11 +283,13 @@ def plan_path(
     right; reverse_first: run the first lane against the bearing. half_width_m: the usable
     half swath the loops round keep-outs are judged by (default ``spacing_m``, as at 50 %
     side overlap). keepouts: ``Keepouts.around(area.holes, clearance_m)``, if already
-    built. Raises PlanningError if no lane runs at least ``MIN_RUN_M`` over the area.
+    built; needed when ``area`` is a geometry (a gap), not an ``Area``. loops: go once
+    round keep-outs (``once_round``); False leaves that to the caller, for the path it
+    makes of this one (``planning.replan``). Raises PlanningError if no lane runs at
+    least ``MIN_RUN_M`` over the area.
     """
     along, across = _axes(bearing_rad)
-    if keepouts is None:
-        keepouts = Keepouts.around(area.holes, clearance_m)
+    keepouts = _keepouts_of(area, clearance_m, keepouts)
     lanes = _lane_runs(
         area,
         keepouts,
@@ -286,10 +315,11 @@ def plan_path(
                 run = Run(index, point(e, v), point(s, v), point(b, v), point(a, v), cut_b, cut_a)
             if legs:
                 kind, lane = (LegKind.TRANSIT, index) if j > 0 else (LegKind.TURN, -1)
-                legs.extend(_connect(legs[-1].end, run.start, kind, lane, keepouts))
+                legs.extend(connect(legs[-1].end, run.start, kind, lane, keepouts))
             legs.append(Leg(LegKind.LANE, index, run.start, run.end))
             plan_runs.append(run)
-    legs = _once_round(legs, area, keepouts, spacing_m if half_width_m is None else half_width_m)
+    if loops:
+        legs = once_round(legs, area, keepouts, spacing_m if half_width_m is None else half_width_m)
     bearing = bearing_rad if not reverse_first else bearing_rad + math.pi
     return SurveyPlan(
         bearing_rad=bearing % (2 * math.pi),
@@ -302,16 +332,22 @@ def plan_path(
     )
 
 
+def _keepouts_of(area: Sweepable, clearance_m: float, keepouts: Keepouts | None) -> Keepouts:
+    if keepouts is not None:
+        return keepouts
+    if not isinstance(area, Area):
+        raise TypeError("the keep-outs are needed to sweep a geometry other than an Area")
+    return Keepouts.around(area.holes, clearance_m)
+
+
 # --- the bearing and the whole plan ---
 
 
-def candidate_bearings(area: Area, step_deg: float = 5.0) -> list[float]:
+def candidate_bearings(area: Sweepable, step_deg: float = 5.0) -> list[float]:
     """Lane bearings (radians, 0..pi) worth trying: along each edge of the area's convex
     hull (rotating calipers: the narrowest width lies across one of them) and every
     ``step_deg`` degrees."""
-    hull = shapely.convex_hull(
-        shapely.multipoints(np.concatenate([p.outer for p in area.polygons]))
-    )
+    hull = shapely.convex_hull(shapely.multipoints(_outline_points(area)))
     ring = shapely.get_coordinates(hull)
     d = np.diff(ring, axis=0)
     edges = np.arctan2(d[:, 0], d[:, 1]) % math.pi
@@ -324,7 +360,7 @@ def candidate_bearings(area: Area, step_deg: float = 5.0) -> list[float]:
 
 
 def choose_bearing(
-    area: Area,
+    area: Sweepable,
     *,
     spacing_m: float,
     lead_in_m: float,
@@ -335,9 +371,9 @@ def choose_bearing(
     narrowest width across the lanes (fewest, longest lanes), among ``candidate_bearings``.
 
     Time alone is not the measure: a slightly skewed set of lanes that clips the corners
-    of a rectangle is a little shorter, but no surveyor wants it."""
-    if keepouts is None:
-        keepouts = Keepouts.around(area.holes, clearance_m)
+    of a rectangle is a little shorter, but no surveyor wants it. keepouts: as for
+    ``plan_path``."""
+    keepouts = _keepouts_of(area, clearance_m, keepouts)
     best: tuple[tuple[int, float], float] | None = None
     failure: PlanningError | None = None
     for bearing in candidate_bearings(area):
@@ -355,6 +391,47 @@ def choose_bearing(
         assert failure is not None
         raise failure
     return best[1]
+
+
+def sweep_options(
+    area: Sweepable,
+    *,
+    spacing_m: float,
+    bearing_rad: float | None = None,
+    lead_in_m: float = 5.0,
+    clearance_m: float = 2.0,
+    half_width_m: float | None = None,
+    keepouts: Keepouts | None = None,
+    loops: bool = True,
+) -> list[SurveyPlan]:
+    """The four ways to sweep ``area`` (from either side, the first lane either way) with
+    lanes along ``bearing_rad`` (given, or ``choose_bearing``'s). keepouts, loops: as for
+    ``plan_path``. Raises PlanningError if no lane runs at least ``MIN_RUN_M`` over it."""
+    keepouts = _keepouts_of(area, clearance_m, keepouts)
+    if bearing_rad is None:
+        bearing_rad = choose_bearing(
+            area,
+            spacing_m=spacing_m,
+            lead_in_m=lead_in_m,
+            clearance_m=clearance_m,
+            keepouts=keepouts,
+        )
+    return [
+        plan_path(
+            area,
+            bearing_rad=bearing_rad,
+            spacing_m=spacing_m,
+            lead_in_m=lead_in_m,
+            clearance_m=clearance_m,
+            reverse_sweep=sweep,
+            reverse_first=first,
+            half_width_m=half_width_m,
+            keepouts=keepouts,
+            loops=loops,
+        )
+        for sweep in (False, True)
+        for first in (False, True)
+    ]
 
 
 def plan_survey(
@@ -382,30 +459,14 @@ def plan_survey(
         raise PlanningError("lead-in and clearance must not be negative")
     if entry not in ENTRY_CORNERS:
         raise PlanningError(f"entry {entry!r} is not one of {', '.join(ENTRY_CORNERS)}")
-    keepouts = Keepouts.around(area.holes, clearance_m)
-    if bearing_rad is None:
-        bearing_rad = choose_bearing(
-            area,
-            spacing_m=spacing_m,
-            lead_in_m=lead_in_m,
-            clearance_m=clearance_m,
-            keepouts=keepouts,
-        )
-    options = [
-        plan_path(
-            area,
-            bearing_rad=bearing_rad,
-            spacing_m=spacing_m,
-            lead_in_m=lead_in_m,
-            clearance_m=clearance_m,
-            reverse_sweep=sweep,
-            reverse_first=first,
-            half_width_m=half_width_m,
-            keepouts=keepouts,
-        )
-        for sweep in (False, True)
-        for first in (False, True)
-    ]
+    options = sweep_options(
+        area,
+        spacing_m=spacing_m,
+        bearing_rad=bearing_rad,
+        lead_in_m=lead_in_m,
+        clearance_m=clearance_m,
+        half_width_m=half_width_m,
+    )
     if entry == "auto" and home is None:
         return min(options, key=lambda plan: plan.duration_s(speed_mps))
     if entry == "auto":
