@@ -10,8 +10,8 @@ pictures.
   line 0 home).
 - ``plan_geojson``: the area, keep-outs (role ``keepout_hull``, the name they kept from
   when they were convex hulls), legs (LineStrings) and waypoints (Points), WGS84 lon/lat,
-  for QGIS.
-- ``write_png``: a picture of the plan over the area, with the swath.
+  for QGIS; for a re-plan (``seamap.replan_files``) the gaps too (role ``gap``).
+- ``write_png``: a picture of the plan over the area, with the swath (and the gaps).
 
 The MAVLink numbers the files carry are here too; ``seamap.plan_files`` reads them back.
 """
@@ -20,11 +20,14 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import shapely
+from shapely.geometry.polygon import orient
 
 from mapping.geo import LocalFrame
 from planning.coverage import MAPPING_LEGS
@@ -152,9 +155,24 @@ def _lonlat(frame: LocalFrame, xy: FloatArray) -> list[list[float]]:
     return [[round(float(b), 8), round(float(a), 8)] for a, b in zip(lat, lon, strict=True)]
 
 
-def plan_geojson(survey: SurveyArea, plan: SurveyPlan, summary: dict[str, Any]) -> str:
+PLAN_AREA_PROPERTIES = ("area_m2", "covered_m2", "coverage", "spacing_m", "angle_deg")
+"""The summary's keys a plan's area feature carries."""
+
+
+def plan_geojson(
+    survey: SurveyArea,
+    plan: SurveyPlan,
+    summary: dict[str, Any],
+    *,
+    area_properties: dict[str, Any] | None = None,
+    gaps: Sequence[tuple[shapely.Polygon, dict[str, Any]]] = (),
+) -> str:
     """GeoJSON FeatureCollection (WGS84 lon/lat) of the area, keep-outs, the path's
-    legs (consecutive legs of one kind and lane as one LineString) and the waypoints."""
+    legs (consecutive legs of one kind and lane as one LineString) and the waypoints.
+
+    area_properties: the area feature's (default the summary's ``PLAN_AREA_PROPERTIES``);
+    gaps: polygons in the survey's local metres, each a feature of role ``gap`` with its
+    properties."""
     frame = survey.frame
 
     def closed(ring: list[list[float]]) -> list[list[float]]:
@@ -169,12 +187,28 @@ def plan_geojson(survey: SurveyArea, plan: SurveyPlan, summary: dict[str, Any]) 
         if len(polygons) == 1
         else {"type": "MultiPolygon", "coordinates": polygons}
     )
-    area_props = {
-        k: summary[k] for k in ("area_m2", "covered_m2", "coverage", "spacing_m", "angle_deg")
-    }
+    if area_properties is None:
+        area_properties = {k: summary[k] for k in PLAN_AREA_PROPERTIES}
     features: list[dict[str, Any]] = [
-        {"type": "Feature", "properties": {"role": "area", **area_props}, "geometry": area_geometry}
+        {
+            "type": "Feature",
+            "properties": {"role": "area", **area_properties},
+            "geometry": area_geometry,
+        }
     ]
+    for gap, properties in gaps:
+        oriented = orient(gap, 1.0)  # RFC 7946: outer rings counterclockwise, holes clockwise
+        rings = [oriented.exterior, *oriented.interiors]
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"role": "gap", **properties},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [_lonlat(frame, np.asarray(r.coords)) for r in rings],
+                },
+            }
+        )
     for keepout in plan.keepouts:
         features.append(
             {
@@ -223,10 +257,25 @@ _LEG_STYLE = {
 }
 
 
+def plan_title(summary: dict[str, Any]) -> str:
+    """The picture's title for a survey plan: lanes, spacing, length, time, coverage."""
+    return (
+        f"{summary['lanes']} lanes at {summary['angle_deg']:.1f}° true, "
+        f"{summary['spacing_m']:.2f} m apart (swath {summary['swath_m']:.1f} m); "
+        f"{summary['distance_m'] / 1000:.2f} km, {summary['duration_s'] / 60:.0f} min, "
+        f"coverage {100 * summary['coverage']:.1f}%"
+    )
+
+
 def write_png(
-    path: Path, survey: SurveyArea, plan: SurveyPlan, swath: Swath, summary: dict[str, Any]
+    path: Path,
+    survey: SurveyArea,
+    plan: SurveyPlan,
+    swath: Swath,
+    title: str,
+    gaps: Sequence[shapely.Polygon] = (),
 ) -> None:
-    """A picture of the plan in local grid metres: area, keep-outs, swath, path."""
+    """A picture of the plan in local grid metres: area, keep-outs, gaps, swath, path."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PolyCollection
     from matplotlib.figure import Figure
@@ -237,6 +286,12 @@ def write_png(
     axes = figure.add_subplot()
     for polygon in survey.area.polygons:
         axes.add_patch(PolygonPatch(polygon.outer, closed=True, fc="#e8f1e4", ec="#2f6b2f"))
+    for gap in gaps:
+        outline = np.asarray(gap.exterior.coords)
+        axes.add_patch(PolygonPatch(outline, closed=True, fc="#fb923c", ec="#c2410c", alpha=0.6))
+        for island in gap.interiors:  # seen well enough (or a hole): the area's colour again
+            axes.add_patch(PolygonPatch(np.asarray(island.coords), closed=True, fc="#e8f1e4"))
+    for polygon in survey.area.polygons:
         for hole in polygon.holes:
             axes.add_patch(PolygonPatch(hole, closed=True, fc="#f3c9c0", ec="#b91c1c", hatch="//"))
     for keepout in plan.keepouts:
@@ -266,13 +321,7 @@ def write_png(
     axes.set_ylabel("north (m)")
     axes.grid(True, lw=0.3)
     axes.legend(loc="upper right", fontsize=8)
-    axes.set_title(
-        f"{summary['lanes']} lanes at {summary['angle_deg']:.1f}° true, "
-        f"{summary['spacing_m']:.2f} m apart (swath {summary['swath_m']:.1f} m); "
-        f"{summary['distance_m'] / 1000:.2f} km, {summary['duration_s'] / 60:.0f} min, "
-        f"coverage {100 * summary['coverage']:.1f}%",
-        fontsize=9,
-    )
+    axes.set_title(title, fontsize=9)
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as stream:
         figure.savefig(stream, format="png")

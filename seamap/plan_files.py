@@ -9,7 +9,9 @@ writes four files next to ``out`` (``seamap.plan_export``):
 - ``PLAN.geojson``: the area, keep-outs, legs and waypoints (WGS84 lon/lat), for QGIS;
 - ``PLAN.png``: a picture of the plan over the area, with the swath.
 
-``read_plan`` reads the waypoints, speed, home and firmware back from a ``.plan``.
+``write_plan_files`` writes them for any planned path (``seamap.replan_files`` writes a
+re-plan of a survey's gaps through it); ``read_plan`` reads the waypoints, speed, home and
+firmware back from a ``.plan``.
 """
 
 from __future__ import annotations
@@ -17,13 +19,17 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import shapely
+
 from planning.area import PlanningError
 from planning.coverage import coverage
 from planning.lawnmower import plan_survey as plan_lawnmower
+from planning.plan import SurveyPlan
 from planning.swath import Swath, sonar_swath
 from seamap.config import SiteConfig
 from seamap.errors import SeamapError
@@ -34,6 +40,7 @@ from seamap.plan_export import (
     MAV_CMD_NAV_WAYPOINT,
     mission_planner_waypoints,
     plan_geojson,
+    plan_title,
     qgc_plan,
     write_png,
 )
@@ -81,7 +88,7 @@ def swath_from_config(config: SiteConfig) -> Swath:
     )
 
 
-def _check_settings(
+def check_settings(
     spacing_m: float | None,
     overlap: float,
     angle_deg: float | None,
@@ -90,9 +97,12 @@ def _check_settings(
     entry: str,
     firmware: str,
     clearance_m: float,
+    command: str = "survey plan",
 ) -> None:
+    """SeamapError (one line, starting with ``command``) for a setting out of its range."""
+
     def bad(what: str, value: object, why: str) -> SeamapError:
-        return SeamapError(f"survey plan: {what} {value!r} {why}")
+        return SeamapError(f"{command}: {what} {value!r} {why}")
 
     if spacing_m is not None and not (math.isfinite(spacing_m) and 0.1 <= spacing_m <= 1000):
         raise bad("spacing", spacing_m, "must be 0.1..1000 m")
@@ -144,17 +154,13 @@ def plan_survey(
     epsg (the UTM zone planned in) and files (the four paths). Raises SeamapError (one
     line) for bad input; nothing is written then.
     """
-    _check_settings(
+    check_settings(
         spacing_m, overlap, angle_deg, speed_mps, lead_in_m, entry, firmware, clearance_m
     )
     survey = read_area(Path(area))
     frame = survey.frame
-    try:
-        swath = swath_from_config(config)
-    except PlanningError as exc:
-        raise SeamapError(f"survey plan: {exc}") from None
-    spacing = spacing_m if spacing_m is not None else swath.spacing_for(overlap)
-    spacing = round(spacing, 3)
+    swath = configured_swath(config, "survey plan")
+    spacing = lane_spacing(swath, spacing_m, overlap)
     lat0, lon0 = _centre(survey)
     bearing = None
     if angle_deg is not None:
@@ -179,10 +185,7 @@ def plan_survey(
         raise SeamapError(f"{area}: {located_message(exc, frame)}") from None
     cover = coverage(survey.area, plan, swath.half_width_m)
 
-    xy = plan.waypoints
-    lat, lon = frame.to_latlon(xy[:, 0], xy[:, 1])
-    waypoints = [(float(a), float(b)) for a, b in zip(lat, lon, strict=True)]
-    home_latlon = home if home is not None else waypoints[0]
+    waypoints = mission_waypoints(survey, plan)
     true_axis = math.degrees(frame.grid_to_true(plan.bearing_rad, lat0, lon0)) % 180.0
     summary: dict[str, Any] = {
         "waypoints": len(waypoints),
@@ -202,22 +205,74 @@ def plan_survey(
         "coverage": round(cover.fraction, 4),
         "epsg": frame.epsg,
     }
+    summary["files"] = write_plan_files(
+        out,
+        survey,
+        plan,
+        swath,
+        waypoints,
+        speed_mps=speed_mps,
+        home=home,
+        firmware=firmware,
+        geojson=plan_geojson(survey, plan, summary),
+        title=plan_title(summary),
+    )
+    return summary
 
+
+def configured_swath(config: SiteConfig, command: str) -> Swath:
+    """The configured sonar's usable swath; SeamapError (one line) if it has none."""
+    try:
+        return swath_from_config(config)
+    except PlanningError as exc:
+        raise SeamapError(f"{command}: {exc}") from None
+
+
+def lane_spacing(swath: Swath, spacing_m: float | None, overlap: float) -> float:
+    """The lanes' spacing (m): as given, else the swath's at ``overlap``; to the mm."""
+    return round(spacing_m if spacing_m is not None else swath.spacing_for(overlap), 3)
+
+
+def mission_waypoints(survey: SurveyArea, plan: SurveyPlan) -> list[tuple[float, float]]:
+    """The path's waypoints as (lat, lon) degrees."""
+    xy = plan.waypoints
+    lat, lon = survey.frame.to_latlon(xy[:, 0], xy[:, 1])
+    return [(float(a), float(b)) for a, b in zip(lat, lon, strict=True)]
+
+
+def write_plan_files(
+    out: Path,
+    survey: SurveyArea,
+    plan: SurveyPlan,
+    swath: Swath,
+    waypoints: list[tuple[float, float]],
+    *,
+    speed_mps: float,
+    home: tuple[float, float] | None,
+    firmware: str,
+    geojson: str,
+    title: str,
+    gaps: Sequence[shapely.Polygon] = (),
+) -> list[str]:
+    """Write PLAN.plan, .waypoints, .geojson (``geojson``, the text) and .png (``title``,
+    ``gaps`` drawn) next to ``out``; the planned home is ``home`` (lat, lon), else the
+    first waypoint. Returns the four paths; SeamapError (one line) if they cannot be
+    written."""
     base = Path(out)
     if base.suffix.lower() == ".plan":
         base = base.with_suffix("")
     paths = [base.with_name(base.name + ext) for ext in (".plan", ".waypoints", ".geojson", ".png")]
     holes = [ring for polygon in survey.polygons_latlon for ring in polygon[1:]]
+    home_latlon = home if home is not None else waypoints[0]
     try:
         base.parent.mkdir(parents=True, exist_ok=True)
         _write_text(paths[0], qgc_plan(waypoints, speed_mps, home_latlon, firmware, holes))
         _write_text(paths[1], mission_planner_waypoints(waypoints, speed_mps, home_latlon))
-        _write_text(paths[2], plan_geojson(survey, plan, summary))
-        write_png(paths[3], survey, plan, swath, summary)
+        _write_text(paths[2], geojson)
+        write_png(paths[3], survey, plan, swath, title, gaps)
     except OSError as exc:
         raise SeamapError(f"{out}: cannot write the plan ({exc})") from None
-    summary["files"] = [str(p) for p in paths]
-    return summary
+    return [str(p) for p in paths]
 
 
 def _centre(survey: SurveyArea) -> tuple[float, float]:
