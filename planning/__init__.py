@@ -13,9 +13,10 @@ mission files.
 - ``planning.lawnmower``: the lanes over the area and the path (the rules are in its doc);
 - ``planning.plan``: the planned path, its length and duration;
 - ``planning.coverage``: how much of the area the path maps;
-- ``planning.gaps``: what a survey missed of the area, from the cells it saw well enough.
+- ``planning.gaps``: what a survey missed of the area, from the cells it saw well enough;
+- ``planning.replan``: lanes over those gaps, in the order that shortens the way there.
 
-The public names of all seven are importable from here.
+The public names of all eight are importable from here.
 """
 
 from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
@@ -27,18 +28,24 @@ from planning.lawnmower import (
     LOOP_MIN_M2,
     MAX_LANES,
     MIN_RUN_M,
+    Sweepable,
     area_width,
     candidate_bearings,
     choose_bearing,
+    connect,
     lane_offsets,
+    once_round,
     plan_path,
     plan_survey,
+    sweep_options,
 )
 from planning.plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
+from planning.replan import GAP_MARGIN, GapGroup, GapPlan, plan_gaps
 from planning.swath import MIN_LOOK_M, Swath, sonar_swath
 
 __all__ = [
     "ENTRY_CORNERS",
+    "GAP_MARGIN",
     "LOOP_MIN_M2",
     "MAPPING_LEGS",
     "MAX_LANES",
@@ -48,6 +55,8 @@ __all__ = [
     "Area",
     "AreaCoverage",
     "Coverage",
+    "GapGroup",
+    "GapPlan",
     "Keepouts",
     "Leg",
     "LegKind",
@@ -56,17 +65,22 @@ __all__ = [
     "Run",
     "SurveyPlan",
     "Swath",
+    "Sweepable",
     "area_gaps",
     "area_width",
     "candidate_bearings",
     "cells_geometry",
     "choose_bearing",
     "clean_ring",
+    "connect",
     "coverage",
     "lane_offsets",
+    "once_round",
+    "plan_gaps",
     "plan_path",
     "plan_survey",
     "sonar_swath",
     "swath_cover",
+    "sweep_options",
     "validate_area",
 ]

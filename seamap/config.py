@@ -194,7 +194,8 @@ class CoverageConfig:
     seconds (2.7 m of fan depth at 0.5 m/s), the next lane comes back a minute later."""
     min_gap_m2: float = 1.0
     """The smallest uncovered part of the area reported as a gap (m²): 16 cells, a patch
-    a lane's fan sweeps over in two seconds; smaller ones still count as uncovered."""
+    a lane's fan sweeps over in two seconds; smaller ones still count as uncovered.
+    ``seamap survey replan`` plans lanes over the gaps of at least this (``--min-gap``)."""
 
 
 @dataclass(frozen=True)

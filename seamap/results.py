@@ -2,7 +2,8 @@
 coverage.tif, coverage.png and, when the survey's area is known, gaps.geojson.
 
 Written by replay, by the daemon at survey end and by the demo. Files are written to a
-temporary name and renamed, so a reader never sees half a file.
+temporary name and renamed, so a reader never sees half a file. ``read_coverage_tif``
+reads coverage.tif back (``seamap survey replan``).
 """
 
 from __future__ import annotations
@@ -11,8 +12,10 @@ import csv
 import json
 import math
 import os
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -21,11 +24,13 @@ import numpy as np
 import numpy.typing as npt
 import rasterio
 import shapely
+from rasterio.errors import RasterioError
 from rasterio.transform import from_origin
 from shapely.geometry.polygon import orient
 
 from mapping.coverage import CoverageGrid
 from mapping.geo import LocalFrame
+from seamap.errors import SeamapError
 
 
 @contextmanager
@@ -94,6 +99,69 @@ def write_coverage_tif(path: Path, grid: CoverageGrid, epsg: int, min_passes: in
             dataset.set_band_description(index, name)
         dataset.update_tags(min_passes=str(min_passes), cell_m=repr(grid.cell_m))
     os.replace(tmp, path)
+
+
+@dataclass(frozen=True, eq=False)
+class CoverageRaster:
+    """coverage.tif as read back: ``meets_bar`` per cell (north-up, row 0 northernmost),
+    the UTM easting and northing of its top-left corner, the cell side (m), the EPSG code
+    and the bar (``min_passes``, None when the file does not say)."""
+
+    meets_bar: npt.NDArray[np.bool_]
+    west_m: float
+    north_m: float
+    cell_m: float
+    epsg: int
+    min_passes: int | None
+
+
+def read_coverage_tif(path: Path) -> CoverageRaster:
+    """Read a coverage.tif that ``write_coverage_tif`` wrote; SeamapError (one line, naming
+    the file) unless it is one: a GeoTIFF of the three bands by name, a UTM CRS, north-up
+    square cells."""
+    path = Path(path)
+    if not path.exists():
+        raise SeamapError(f"{path}: no such file")
+    if path.is_dir():
+        raise SeamapError(f"{path}: is a directory, not a coverage raster")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # NotGeoreferencedWarning: the checks below say it
+        try:
+            with rasterio.open(path) as dataset:
+                bands = tuple(dataset.descriptions)
+                crs = dataset.crs
+                transform = dataset.transform
+                tags = dataset.tags()
+                meets = dataset.read(3) > 0 if bands == COVERAGE_BANDS else None
+        except RasterioError as exc:
+            reason = (str(exc).splitlines() or ["unreadable"])[0]
+            raise SeamapError(f"{path}: not a GeoTIFF ({reason})") from None
+    if meets is None:
+        names = ", ".join(str(b) for b in bands)
+        raise SeamapError(
+            f"{path}: not a seamap coverage raster (bands {names}; expected "
+            f"{', '.join(COVERAGE_BANDS)})"
+        )
+    epsg = crs.to_epsg() if crs is not None else None
+    if epsg is None or not (32601 <= epsg <= 32660 or 32701 <= epsg <= 32760):
+        raise SeamapError(
+            f"{path}: not a seamap coverage raster (its CRS {crs or 'is missing'}"
+            f"{'' if crs is None else ' is not UTM'})"
+        )
+    cell = float(transform.a)
+    if not (cell > 0 and transform.b == 0 and transform.d == 0 and transform.e == -cell):
+        raise SeamapError(
+            f"{path}: not a seamap coverage raster (its cells are not north-up squares)"
+        )
+    bar = tags.get("min_passes", "")
+    return CoverageRaster(
+        meets_bar=meets,
+        west_m=float(transform.c),
+        north_m=float(transform.f),
+        cell_m=cell,
+        epsg=int(epsg),
+        min_passes=int(bar) if bar.isdigit() else None,
+    )
 
 
 COVERAGE_COLOURS = {

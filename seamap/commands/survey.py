@@ -1,9 +1,12 @@
-"""``seamap survey plan|start|status|pause|resume|abort``: survey missions on the autopilot.
+"""``seamap survey plan|replan|start|status|pause|resume|abort``: survey missions on the
+autopilot.
 
-``plan`` turns an area into a QGroundControl ``.plan`` (``seamap.plan_files``); the others
-talk to the autopilot through MAVSDK (``drivers.mission``). ``start`` then asks the boat
-daemon over zenoh to open a survey. Exit status: 0 done; 2 refused (one line on stderr,
-nothing started); 1 the mission runs but the daemon did not open a survey.
+``plan`` turns an area into a QGroundControl ``.plan`` (``seamap.plan_files``), ``replan``
+what a survey missed of it (``seamap.replan_files``); the others talk to the autopilot
+through MAVSDK (``drivers.mission``). ``start`` then asks the boat daemon over zenoh to
+open a survey. Exit status: 0 done (for ``replan`` also when there is nothing to
+re-plan: it says so and writes nothing); 2 refused (one line on stderr, nothing started
+or written); 1 the mission runs but the daemon did not open a survey.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import sys
 from collections.abc import Sized
 from pathlib import Path
@@ -72,6 +76,64 @@ def register(subparsers: Any) -> None:
     plan.add_argument("--config", type=Path, help="the site TOML file (sonar mount and range)")
     plan.add_argument("--out", type=Path, required=True, help="the .plan file to write")
     plan.set_defaults(handler=run_plan)
+
+    replan = actions.add_parser(
+        "replan",
+        help="lanes over what a survey missed of its area, as a QGroundControl .plan",
+        description=(
+            "Lanes over the gaps a survey left in its area: the area (holes left out) less "
+            "the cells its coverage.tif says were seen well enough (band 3, meets_bar), "
+            "each part of at least --min-gap m². Each gap, or group of nearby gaps, gets "
+            "lanes at its own bearing, and the groups are taken in the order that shortens "
+            "the way from where the boat is, round the keep-outs. Written as survey plan "
+            "writes a plan (.plan, .waypoints, .geojson, .png), for seamap survey start. "
+            "With no gap it prints 'nothing to re-plan', writes nothing and exits 0."
+        ),
+    )
+    source = replan.add_mutually_exclusive_group(required=True)
+    source.add_argument(
+        "--survey",
+        type=Path,
+        metavar="DIR",
+        help="the survey's result folder: its coverage.tif, and its trajectory.csv's last "
+        "row as where the boat starts",
+    )
+    source.add_argument("--coverage", type=Path, metavar="TIF", help="a coverage.tif")
+    replan.add_argument(
+        "--area", type=Path, required=True, help="the survey's area, a GeoJSON polygon"
+    )
+    replan.add_argument(
+        "--min-gap",
+        metavar="M2",
+        help="the smallest gap to re-plan, m² (default: the config's [coverage] min_gap_m2)",
+    )
+    replan.add_argument(
+        "--spacing",
+        metavar="M",
+        help="lane spacing in metres (default: from the sonar's swath, as survey plan)",
+    )
+    replan.add_argument(
+        "--from",
+        dest="start",
+        metavar="LAT,LON",
+        help="where the boat is, decimal degrees (south or west: --from=-33.86,151.21; "
+        "default: the survey's last position, else the area's first vertex)",
+    )
+    replan.add_argument("--speed", metavar="MPS", default="1.0", help="survey speed, m/s (1.0)")
+    replan.add_argument(
+        "--lead-in", metavar="M", default="5.0", help="straight run before each lane, m (5.0)"
+    )
+    replan.add_argument(
+        "--firmware",
+        choices=("ardupilot", "px4"),
+        default="ardupilot",
+        help="autopilot the plan is for (%(default)s)",
+    )
+    replan.add_argument("--config", type=Path, help="the site TOML file (sonar, [coverage])")
+    replan.add_argument(
+        "--out", type=Path, required=True, metavar="GAPS.plan", help="the .plan file to write"
+    )
+    replan.set_defaults(handler=run_replan)
 
     start = actions.add_parser(
         "start",
@@ -145,19 +207,109 @@ def run_plan(args: argparse.Namespace) -> int:
 
 
 def format_plan_summary(out: Path, summary: dict[str, Any]) -> str:
+    lines = [
+        f"{out}: {_lanes(summary)}",
+        f"  {_length(summary)}; covers {_covered(summary)}",
+    ]
+    lines += [f"  wrote {path}" for path in summary.get("files") or ()]
+    return "\n".join(lines)
+
+
+def _lanes(summary: dict[str, Any]) -> str:
     def count(value: Any) -> int:
         return len(value) if isinstance(value, Sized) else int(value)
 
-    area, covered = float(summary["area_m2"]), float(summary["covered_m2"])
-    coverage = 100.0 * covered / area if area > 0 else 100.0 * float(summary["coverage"])
     spacing = f"spacing {summary['spacing_m']:.2f} m"
     if "swath_m" in summary and "overlap" in summary:
         spacing += f" (swath {summary['swath_m']:.2f} m, overlap {100 * summary['overlap']:.0f} %)"
+    angles = summary.get("angles_deg") or [summary["angle_deg"]]
+    unique = sorted(set(angles), key=angles.index)
+    return (
+        f"{count(summary['lanes'])} lanes, {count(summary['waypoints'])} waypoints, "
+        f"{spacing}, lanes at {', '.join(f'{a:.1f}°' for a in unique)} from north"
+    )
+
+
+def _length(summary: dict[str, Any]) -> str:
+    return f"{summary['distance_m'] / 1000:.2f} km, about {summary['duration_s'] / 60:.0f} min"
+
+
+def _covered(summary: dict[str, Any]) -> str:
+    area, covered = float(summary["area_m2"]), float(summary["covered_m2"])
+    coverage = 100.0 * covered / area if area > 0 else 100.0 * float(summary["coverage"])
+    return f"{covered:.0f} of {area:.0f} m² ({coverage:.1f} %)"
+
+
+def run_replan(args: argparse.Namespace) -> int:
+    from seamap.config import load_config
+
+    options: dict[str, Any] = {
+        "survey": args.survey,
+        "coverage": args.coverage,
+        "min_gap_m2": None if args.min_gap is None else _number("--min-gap", args.min_gap),
+        "spacing_m": None if args.spacing is None else _number("--spacing", args.spacing),
+        "speed_mps": _number("--speed", args.speed),
+        "lead_in_m": _number("--lead-in", args.lead_in),
+        "firmware": args.firmware,
+        "start": None if args.start is None else _latlon("--from", args.start),
+    }
+    config = load_config(args.config)
+    planner: Any = importlib.import_module("seamap.replan_files")
+    summary: dict[str, Any] = planner.replan_survey(args.area, args.out, config, **options)
+    print(format_replan_summary(args.out, summary))
+    return 0
+
+
+def _number(option: str, text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise SeamapError(f"{option} {text!r}: not a number") from None
+    if not math.isfinite(value):
+        raise SeamapError(f"{option} {text!r}: not a finite number")
+    return value
+
+
+def _latlon(option: str, text: str) -> tuple[float, float]:
+    parts = text.replace(";", ",").split(",")
+    if len(parts) != 2:
+        raise SeamapError(f"{option} {text!r}: expected LAT,LON in decimal degrees")
+    lat, lon = (_number(option, part.strip()) for part in parts)
+    if abs(lat) > 90 or abs(lon) > 180:
+        raise SeamapError(f"{option} {text!r}: latitude or longitude out of range (LAT,LON)")
+    return lat, lon
+
+
+def _many(count: int, thing: str) -> str:
+    return f"{count} {thing}" if count == 1 else f"{count} {thing}s"
+
+
+def format_replan_summary(out: Path, summary: dict[str, Any]) -> str:
+    """What ``seamap survey replan`` prints: the gaps, then the plan as ``survey plan``
+    prints it, with how much of the gaps it maps; or that there is nothing to re-plan."""
+    survey = summary["survey"]
+    seen = f"the survey covered {100 * survey['covered_fraction']:.1f} % of the area"
+    if not summary["gaps"]:
+        return (
+            f"{out}: nothing to re-plan: {seen} ({survey['covered_m2']:.0f} of "
+            f"{survey['area_m2']:.0f} m²) and left no gap of {summary['min_gap_m2']:g} m² "
+            "or more; no plan written"
+        )
+    gaps = (
+        f"{out}: {_many(summary['gaps'], 'gap')} of {summary['min_gap_m2']:g} m² or more, "
+        f"{summary['gaps_m2']:.0f} m² ({seen}), in {_many(summary['groups'], 'group')}"
+    )
+    if summary["unreachable"]:
+        gaps += (
+            f"; {summary['unreachable']} ({summary['unreachable_m2']:.0f} m²) no lane reaches "
+            "(within the clearance of a hole)"
+        )
+    lat, lon = summary["start"]
     lines = [
-        f"{out}: {count(summary['lanes'])} lanes, {count(summary['waypoints'])} waypoints, "
-        f"{spacing}, lanes at {summary['angle_deg']:.1f}° from north",
-        f"  {summary['distance_m'] / 1000:.2f} km, about {summary['duration_s'] / 60:.0f} min; "
-        f"covers {covered:.0f} of {area:.0f} m² ({coverage:.1f} %)",
+        gaps,
+        f"  {_lanes(summary)}",
+        f"  {_length(summary)}, {summary['approach_m']:.0f} m from {summary['start_from']} "
+        f"({lat:.7f},{lon:.7f}) to the first lane; covers {_covered(summary)} of the gaps",
     ]
     lines += [f"  wrote {path}" for path in summary.get("files") or ()]
     return "\n".join(lines)
