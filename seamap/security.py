@@ -36,8 +36,10 @@ import ipaddress
 import json
 import os
 import secrets
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
@@ -383,14 +385,9 @@ def init_security(
     SeamapError in one line for a bad argument or an unwritable folder."""
     _check_vehicle(vehicle)
     hosts = _check_common(shores, port, hosts)
-    out = Path(out)
-    if (out / "ca.key").exists():
-        raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        return _write_set(out, vehicle, hosts, shores, install_dir, port)
-    except OSError as exc:
-        raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
+    return _into_new_folder(
+        Path(out), lambda folder: _write_set(folder, vehicle, hosts, shores, install_dir, port)
+    )
 
 
 def _new_ca(out: Path, name: str) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
@@ -506,14 +503,10 @@ def init_fleet_security(
         if ":" in vehicle:  # the users file is "user:password"
             raise SeamapError(f"--vehicle {vehicle!r}: no ':' in a vehicle id")
     hosts = _check_common(shores, port, hosts)
-    out = Path(out)
-    if (out / "ca.key").exists():
-        raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        return _write_fleet_set(out, vehicles, hosts, shores, install_dir, port)
-    except OSError as exc:
-        raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
+    return _into_new_folder(
+        Path(out),
+        lambda folder: _write_fleet_set(folder, vehicles, hosts, shores, install_dir, port),
+    )
 
 
 def _write_fleet_set(
@@ -584,3 +577,18 @@ def insecure_listen(endpoints: list[str]) -> list[str]:
             pass  # a host name other than localhost: reachable from elsewhere
         found.append(endpoint)
     return found
+
+
+_Set = TypeVar("_Set")
+
+
+def _into_new_folder(out: Path, write: Callable[[Path], _Set]) -> _Set:
+    """``write(out)`` into a folder that holds no set yet (created if need be); one-line
+    SeamapError if it holds one or cannot be written."""
+    if (out / "ca.key").exists():
+        raise SeamapError(f"{out}: already holds a security set (ca.key); choose another --out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        return write(out)
+    except OSError as exc:
+        raise SeamapError(f"{out}: cannot write the security set ({exc.strerror or exc})") from None
