@@ -9,6 +9,13 @@ Keys, ``{vehicle}`` and ``{survey}`` being ids without ``/``:
   alpha, alpha 0 = no data), encoding ``image/png``, attachment JSON ``{"epsg", "res_m",
   "west", "north", "size_px", "version"}``; tile (col, row) covers easting
   [col*T, (col+1)*T) and northing [row*T, (row+1)*T), T = size_px * res_m;
+- ``seamap/{vehicle}/survey/{survey}/coverage``: JSON, how well the survey has seen the
+  seabed so far (``coverage_summary``: the covered fraction of its area and its gaps as
+  GeoJSON when the area is known); ``.../coverage/raster``: the coverage raster for eyes
+  as PNG (RGBA, one pixel a cell, north-up, ``coverage.png``'s colours), attachment JSON
+  ``CoverageInfo``. Both are republished every few seconds while the survey records and
+  once more, ``"final": true``, from the result folder after the survey-end pass; a
+  ``get`` on ``seamap/{vehicle}/survey/{survey}/coverage/**`` answers the latest;
 - ``seamap/{vehicle}/alive``: the vehicle's liveliness token;
 - ``seamap/{vehicle}/control/survey``: a queryable; a ``get`` with payload
   ``{"action": "start"|"stop"|"status"}`` opens or ends a survey and replies JSON
@@ -68,6 +75,118 @@ def tile_key(vehicle: str, survey: str, col: int, row: int) -> str:
 def tiles_selector(vehicle: str, survey: str = "*") -> str:
     """Every tile of one survey (or of every survey, ``*``) of a vehicle."""
     return f"{ROOT}/{vehicle}/survey/{survey}/tile/**"
+
+
+def coverage_key(vehicle: str, survey: str) -> str:
+    return f"{ROOT}/{vehicle}/survey/{survey}/coverage"
+
+
+def coverage_raster_key(vehicle: str, survey: str) -> str:
+    return f"{ROOT}/{vehicle}/survey/{survey}/coverage/raster"
+
+
+def coverage_selector(vehicle: str, survey: str = "*") -> str:
+    """The coverage summary and raster of one survey (or of every survey, ``*``)."""
+    return f"{ROOT}/{vehicle}/survey/{survey}/coverage/**"
+
+
+@dataclass(frozen=True)
+class CoverageKeyParts:
+    vehicle: str
+    survey: str
+    raster: bool
+    """True for ``.../coverage/raster``, False for the summary ``.../coverage``."""
+
+
+def parse_coverage_key(key: str) -> CoverageKeyParts | None:
+    """The parts of a coverage key, or None when ``key`` is not one."""
+    parts = key.split("/")
+    if len(parts) not in (5, 6) or parts[0] != ROOT or parts[2] != "survey":
+        return None
+    if parts[4] != "coverage" or (len(parts) == 6 and parts[5] != "raster"):
+        return None
+    return CoverageKeyParts(parts[1], parts[3], len(parts) == 6)
+
+
+@dataclass(frozen=True)
+class CoverageInfo:
+    """The coverage raster's attachment: its UTM top-left corner (``west``, ``north``
+    metres), its cell side (``cell_m``), size in cells and version (millisecond UNIX
+    time, as the summary's)."""
+
+    epsg: int
+    cell_m: float
+    west: float
+    north: float
+    cols: int
+    rows: int
+    version: int
+
+    def to_json(self) -> bytes:
+        return json_bytes(
+            {
+                "epsg": self.epsg,
+                "cell_m": self.cell_m,
+                "west": self.west,
+                "north": self.north,
+                "cols": self.cols,
+                "rows": self.rows,
+                "version": self.version,
+            }
+        )
+
+    @classmethod
+    def from_json(cls, data: bytes) -> CoverageInfo:
+        """Parse an attachment; ValueError naming what is wrong."""
+        try:
+            raw = json.loads(data)
+            info = cls(
+                int(raw["epsg"]), float(raw["cell_m"]), float(raw["west"]),
+                float(raw["north"]), int(raw["cols"]), int(raw["rows"]), int(raw["version"]),
+            )  # fmt: skip
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"bad coverage attachment ({exc})") from None
+        if not (info.cell_m > 0 and info.cols > 0 and info.rows > 0):
+            raise ValueError("bad coverage attachment (size)")
+        if not math.isfinite(info.west + info.north):
+            raise ValueError("bad coverage attachment (position)")
+        return info
+
+
+COVERAGE_SUMMARY_KEYS = (
+    "survey", "time", "final", "version", "epsg", "cell_m", "min_passes", "seen_m2",
+    "covered_m2", "area", "gaps",
+)  # fmt: skip
+"""What a coverage summary holds (``coverage_summary``)."""
+
+
+def parse_coverage_summary(data: bytes) -> dict[str, Any]:
+    """A coverage summary (JSON object) checked for its keys and types; ValueError naming
+    what is wrong. ``area`` is None or ``{"area_m2", "covered_m2", "fraction", "gaps",
+    "gaps_m2", "min_gap_m2"}``; ``gaps`` a GeoJSON FeatureCollection (WGS84)."""
+    try:
+        summary = json.loads(data)
+    except ValueError as exc:
+        raise ValueError(f"coverage summary is not JSON ({exc})") from None
+    if not isinstance(summary, dict):
+        raise ValueError("coverage summary is not a JSON object")
+    missing = [key for key in COVERAGE_SUMMARY_KEYS if key not in summary]
+    if missing:
+        raise ValueError(f"coverage summary lacks {', '.join(missing)}")
+    area = summary["area"]
+    if area is not None:
+        if not isinstance(area, dict):
+            raise ValueError("coverage summary: area is not an object")
+        for key in ("area_m2", "covered_m2", "fraction"):
+            value = area.get(key)
+            if not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"coverage summary: area {key} is not a number")
+    gaps = summary["gaps"]
+    if not (isinstance(gaps, dict) and gaps.get("type") == "FeatureCollection"):
+        raise ValueError("coverage summary: gaps is not a GeoJSON FeatureCollection")
+    if not isinstance(gaps.get("features"), list):
+        raise ValueError("coverage summary: gaps has no features list")
+    return summary
 
 
 @dataclass(frozen=True)
