@@ -7,6 +7,11 @@ it stays recorded, and the survey-end pass maps it. The worker thread feeds the 
 arrival order; the engine's pose and tile updates come back to the event loop through
 ``loop.call_soon_threadsafe``. An exception inside the engine is logged, the live map is
 started afresh with a new engine (the recording is untouched) and the restart counted.
+
+``on_final`` (optional) is called on the worker thread, once a frame, when the frame's
+live pose first becomes final: its engine's local frame, its time and the vehicle's pose
+there (the daemon's live coverage counts it). It must be quick and never raise into the
+engine (it is guarded: an exception is logged once and the hook dropped).
 """
 
 from __future__ import annotations
@@ -22,12 +27,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
+import numpy as np
+import numpy.typing as npt
+
+from mapping.geo import LocalFrame
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, Sample, StreamingEngine, StreamStats, TileUpdate
 
 log = logging.getLogger(__name__)
 
 U = TypeVar("U")
+FinalHook = Callable[[LocalFrame, float, npt.NDArray[np.float64]], None]
 
 MAX_QUEUED_SAMPLES = 200_000
 """A hard bound on everything queued (about a minute of navigation at full rates while the
@@ -60,6 +70,7 @@ class MappingWorker:
         on_tile: Callable[[TileUpdate], None] | None = None,
         segment: int = 0,
         name: str = "mapping",
+        on_final: FinalHook | None = None,
     ) -> None:
         self._factory = engine_factory
         self._loop = loop
@@ -68,6 +79,9 @@ class MappingWorker:
         """The recording segment this live map belongs to."""
         self.on_pose = on_pose
         self.on_tile = on_tile
+        self.on_final = on_final
+        self._finals_upto = -1
+        """The newest frame index given to ``on_final`` (of the current engine)."""
         self.stats = MapperStats()
         self._queue: collections.deque[Sample | None] = collections.deque()
         self._wake = threading.Condition()
@@ -145,6 +159,17 @@ class MappingWorker:
         return engine
 
     def _pose(self, update: PoseUpdate) -> None:
+        if update.final and update.frame > self._finals_upto and self.on_final is not None:
+            self._finals_upto = update.frame  # first final: frames turn final in order
+            engine = self._engine
+            if engine.frame is not None:
+                try:
+                    self.on_final(
+                        engine.frame, engine.times[update.frame], engine.poses[update.frame]
+                    )
+                except Exception:
+                    log.exception("live coverage failed; it stops for this survey")
+                    self.on_final = None
         if self.on_pose is not None:
             self._call_soon(self.on_pose, update)
 
@@ -189,3 +214,4 @@ class MappingWorker:
         log.debug("engine failure", exc_info=True)
         self._engine = self._new_engine()
         self._engine_stats = self._engine.stats
+        self._finals_upto = -1  # the new engine numbers its frames from 0

@@ -1,4 +1,4 @@
-"""The boat's zenoh side: pose, status and tiles out; tile catch-up and survey control in.
+"""The boat's zenoh side: pose, status, tiles and coverage out; catch-up and survey control in.
 
 The event loop only hands things over (``pose``, ``status``, ``tile``, ``final_tiles``):
 each goes into a latest-wins slot and wakes the publisher's own thread, which encodes the
@@ -22,6 +22,12 @@ contract has no tile deletes and a shore would otherwise keep a stale live tile 
 the final mosaic. Once a survey's final tiles are out, no live tile of it follows them.
 The session comes and goes (``attach``/``detach``, by the daemon's supervised zenoh task);
 the caches do not, so a shore reconnecting after an outage catches up with a ``get``.
+
+Coverage (``coverage``): each survey's latest publication (``seamap.coverage``) is put on
+``seamap/{vehicle}/survey/{survey}/coverage`` (JSON) and ``.../coverage/raster`` (PNG,
+attachment ``CoverageInfo``) and kept; a ``get`` on ``.../coverage/**`` answers the kept
+ones, and for surveys mapped before this run, the final coverage of their result folder.
+Once a survey's final coverage is out, live ones of it are dropped.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ import zenoh
 
 from mapping.streaming import PoseUpdate, TileUpdate
 from seamap import zenoh_io
+from seamap.coverage import CoverageMessage, final_message
 from seamap.zenoh_io import TileInfo
 
 log = logging.getLogger(__name__)
@@ -62,6 +69,7 @@ class PublisherStats:
     replies: int = 0
     put_errors: int = 0
     session_opens: int = 0
+    coverages: int = 0
 
 
 @dataclass(frozen=True)
@@ -97,7 +105,10 @@ class ZenohPublisher:
         self._tile_order = threading.Lock()
         """Held while tiles are stored and put, so a live tile in flight cannot pass the
         final ones."""
-        self._queries: list[Any] = []
+        self._queries: list[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = []
+        self._coverage: dict[str, CoverageMessage] = {}
+        """Each survey's latest coverage publication (guarded by ``_lock``)."""
+        self._pending_coverage: dict[str, CoverageMessage] = {}
         self._tiles: dict[str, dict[tuple[int, int], _Tile]] = {}
         self._lock = threading.Lock()  # guards _tiles
         self._closed = False
@@ -112,6 +123,9 @@ class ZenohPublisher:
         v = self.vehicle
         declared = [
             session.declare_queryable(zenoh_io.tiles_selector(v), self._on_query, complete=True),
+            session.declare_queryable(
+                zenoh_io.coverage_selector(v), self._on_coverage_query, complete=True
+            ),
             session.declare_queryable(zenoh_io.control_key(v), self._on_control, complete=True),
             session.liveliness().declare_token(zenoh_io.alive_key(v)),
         ]
@@ -168,6 +182,17 @@ class ZenohPublisher:
             self._pending_tiles[(survey, update.key)] = update
             self._wake.notify()
 
+    def coverage(self, survey: str, message: CoverageMessage) -> None:
+        """A survey's coverage publication (any thread): kept, and put by the thread."""
+        with self._lock:
+            held = self._coverage.get(survey)
+            if held is not None and held.summary["final"] and not message.summary["final"]:
+                return  # the final coverage is out: a late live one would undo it
+            self._coverage[survey] = message
+        with self._wake:
+            self._pending_coverage[survey] = message
+            self._wake.notify()
+
     def survey_ended(self, survey: str) -> None:
         """Forget the live tiles of a survey: from now on its tiles come from its folder."""
         with self._lock:
@@ -203,7 +228,12 @@ class ZenohPublisher:
 
     def _on_query(self, query: zenoh.Query) -> None:
         with self._wake:
-            self._queries.append(query)
+            self._queries.append((self._answer, query))
+            self._wake.notify()
+
+    def _on_coverage_query(self, query: zenoh.Query) -> None:
+        with self._wake:
+            self._queries.append((self._answer_coverage, query))
             self._wake.notify()
 
     def _on_control(self, query: zenoh.Query) -> None:
@@ -237,6 +267,7 @@ class ZenohPublisher:
                     self._closed
                     or self._queries
                     or self._pending_tiles
+                    or (self._session is not None and self._pending_coverage)
                     or (self._session is not None and (self._pose or self._status))
                 ):
                     self._wake.wait()
@@ -245,7 +276,13 @@ class ZenohPublisher:
                 session = self._session
                 pending, self._pending_tiles = self._pending_tiles, {}
                 queries, self._queries = self._queries, []
+                coverage: dict[str, CoverageMessage] = {}
+                if session is not None:
+                    coverage, self._pending_coverage = self._pending_coverage, {}
             self._put_pose_and_status(session)
+            for survey, message in coverage.items():
+                assert session is not None
+                self._put_coverage(session, survey, message)
             with self._tile_order:
                 for (survey, key), update in pending.items():
                     if survey in self._finished:
@@ -256,8 +293,8 @@ class ZenohPublisher:
                     # A pose handed over meanwhile goes out now, not behind the other
                     # tiles' encoding (where the next one would replace it).
                     self._put_pose_and_status(session)
-            for query in queries:
-                self._answer(query)
+            for answer, query in queries:
+                answer(query)
 
     def _put_pose_and_status(self, session: zenoh.Session | None) -> None:
         """Put the pose and status waiting, if any (without a session they wait, latest
@@ -319,6 +356,34 @@ class ZenohPublisher:
         ):
             self.stats.tiles += 1
 
+    def _put_coverage(self, session: zenoh.Session, survey: str, message: CoverageMessage) -> None:
+        """Put a coverage publication's two keys (a final one waits for the link)."""
+        v = self.vehicle
+        summary = (zenoh_io.coverage_key(v, survey), zenoh_io.json_bytes(message.summary))
+        raster = (zenoh_io.coverage_raster_key(v, survey), message.png)
+        final = message.summary["final"]
+        congestion = zenoh.CongestionControl.BLOCK if final else zenoh.CongestionControl.DROP
+        if self._put(session, *summary, congestion_control=congestion) and self._put(
+            session,
+            *raster,
+            encoding=zenoh.Encoding.IMAGE_PNG,
+            attachment=message.info.to_json(),
+            congestion_control=congestion,
+        ):
+            self.stats.coverages += 1
+
+    def _coverage_of(self, survey: str) -> CoverageMessage | None:
+        """The survey's kept coverage, else its result folder's final one (kept then)."""
+        with self._lock:
+            held = self._coverage.get(survey)
+        if held is not None:
+            return held
+        found = final_message(self.surveys_dir / survey, survey, _version_now())
+        if found is not None:
+            with self._lock:
+                found = self._coverage.setdefault(survey, found)
+        return found
+
     def _answer(self, query: zenoh.Query) -> None:
         """Reply with every held tile whose key the query's key expression intersects."""
         self.stats.queries += 1
@@ -341,6 +406,43 @@ class ZenohPublisher:
                         self.stats.replies += 1
         except Exception as exc:
             log.warning("tile query failed", extra={"fields": {"reason": str(exc)}})
+        finally:
+            query.drop()
+
+    def _answer_coverage(self, query: zenoh.Query) -> None:
+        """Reply with the coverage (summary, raster) of every survey the query names."""
+        self.stats.queries += 1
+        v = self.vehicle
+        try:
+            wanted = query.key_expr
+            with self._lock:
+                live = set(self._coverage)
+            on_disk = {p.parent.name for p in self.surveys_dir.glob("*/report.json")}
+            for survey in sorted(live | on_disk):
+                if not wanted.intersects(zenoh.KeyExpr(zenoh_io.coverage_selector(v, survey))):
+                    continue
+                message = self._coverage_of(survey)
+                if message is None:
+                    continue
+                summary_key = zenoh_io.coverage_key(v, survey)
+                if wanted.intersects(zenoh.KeyExpr(summary_key)):
+                    query.reply(
+                        summary_key,
+                        zenoh_io.json_bytes(message.summary),
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                    )
+                    self.stats.replies += 1
+                raster_key = zenoh_io.coverage_raster_key(v, survey)
+                if wanted.intersects(zenoh.KeyExpr(raster_key)):
+                    query.reply(
+                        raster_key,
+                        message.png,
+                        encoding=zenoh.Encoding.IMAGE_PNG,
+                        attachment=message.info.to_json(),
+                    )
+                    self.stats.replies += 1
+        except Exception as exc:
+            log.warning("coverage query failed", extra={"fields": {"reason": str(exc)}})
         finally:
             query.drop()
 

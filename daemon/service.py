@@ -11,6 +11,14 @@ One asyncio loop; one supervised task per concern (``daemon.supervisor``):
 - **health**: a snapshot a second (``daemon.health``), a log line every
   ``health_interval_s``; **watchdog**: pets systemd while the loop, the recorder and the
   mapping thread are alive; **control**: the local control socket (``daemon.control``).
+- **coverage**: every ``COVERAGE_EVERY_S`` the open survey's live coverage
+  (``seamap.coverage.LiveCoverage``: each frame counted where the live map placed it)
+  becomes the status's ``coverage`` and a zenoh publication; with the survey's area, its
+  covered fraction and gaps. The area comes with the start request (``seamap survey
+  start`` sends its plan's, ``seamap ctl start --area``), else from ``[mission] area``,
+  and is kept in the survey folder (``area.geojson``) for the survey-end pass, which
+  writes the result folder's gaps from it, publishes the final coverage and, with
+  ``[mission] replan_at_end``, plans lanes over the gaps (``replan.plan``).
 
 The mapping engine runs on its own thread (``daemon.mapper``). A survey is a folder
 ``state_dir/surveys/{id}/`` with ``survey.json`` (``daemon.survey``), the recorder's
@@ -30,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import os
@@ -59,11 +68,14 @@ from daemon.survey import (
 from drivers.mavlink.link import MavlinkLink
 from drivers.oculus.link import OculusLink
 from mapping import kernels
+from mapping.coverage import SonarFan
 from mapping.samples import GnssFix, NavSample, Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
 from seamap.config import SiteConfig
+from seamap.coverage import CoverageMessage, LiveCoverage, final_message
 from seamap.errors import SeamapError
 from seamap.memory import return_large_blocks
+from seamap.plan_area import SurveyArea, area_geojson, parse_area, read_area
 from seamap.replay import mount_from_config, pipeline_params
 from seamap.results import write_trajectory
 from seamap.security import insecure_listen
@@ -80,6 +92,14 @@ MAX_PASSES_CUT = 2
 first could be an unrelated crash; a second, the pass itself)."""
 LIVE_TILES = "live-tiles"
 """Folder (in the survey folder) where the live map's idle tiles wait; removed at the end."""
+AREA_FILE = "area.geojson"
+"""The survey's area (in the survey folder), as the start request or the config gave it."""
+REPLAN_FILE = "replan.plan"
+"""The gaps' lanes ``[mission] replan_at_end`` writes into the survey folder (with
+replan.waypoints, replan.geojson and replan.png)."""
+COVERAGE_EVERY_S = 5.0
+"""Seconds between live coverage publications: a boat at 0.5 m/s moves 2.5 m, about the
+fan's depth; the gaps of a hectare take tens of milliseconds to compute."""
 
 
 class Daemon:
@@ -105,6 +125,14 @@ class Daemon:
         """Surveys whose survey-end pass waits for disk space."""
         self._pass_progress: dict[str, str] = {}
         self.publisher: ZenohPublisher | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._mission_area: SurveyArea | None = None
+        """``[mission] area``, read at start-up."""
+        self.coverage: LiveCoverage | None = None
+        """The open survey's live coverage."""
+        self._coverage_status: dict[str, Any] | None = None
+        """The status's ``coverage``: the open survey's latest, else the last survey's
+        (final once its survey-end pass wrote the result folder)."""
         self._shutdown = asyncio.Event()
         self._last_recorder_poll = time.monotonic()
         self._signals = 0
@@ -122,9 +150,11 @@ class Daemon:
                 "or set [zenoh] allow_insecure = true"
             )
         self._prepare_state_dir()
+        if self.config.mission.area:  # a bad area file is a start-up error, said in a line
+            self._mission_area = read_area(Path(self.config.mission.area))
         return_large_blocks()  # tiles' stacks go back to the system when freed
         kernels.warm()  # the tiles' compiled loops, before the first ping needs them
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         self.publisher = ZenohPublisher(
             self.config.daemon.vehicle, surveys_dir(self.state_dir), loop, self._control
         )
@@ -139,6 +169,7 @@ class Daemon:
             ("control", self._control_task),
             ("zenoh", self._zenoh_task),
             ("deferred passes", self._deferred_task),
+            ("coverage", self._coverage_task),
         ):
             self.supervisor.spawn(name, task)
         self._recover()
@@ -248,16 +279,58 @@ class Daemon:
 
     # --- surveys -----------------------------------------------------------------------------
 
-    async def start_survey(self, reason: str = "command") -> str:
-        """Open a new survey (or return the one already open): its id."""
+    async def start_survey(
+        self, reason: str = "command", area: dict[str, Any] | None = None
+    ) -> str:
+        """Open a new survey (or return the one already open): its id. ``area``: the
+        GeoJSON geometry (WGS84) it is to cover (else ``[mission] area``, if set); a survey
+        already open without an area takes it. SeamapError (one line) for a bad area."""
+        given = parse_area(json.dumps(area), "area") if area is not None else None
         if self.survey is not None:
+            self._adopt_area(given)
             return self.survey.id
         survey_id = new_survey_id(self.state_dir)
         state = SurveyState(survey_id, self.config.daemon.vehicle, started=time.time())
         state.reason = reason
-        (surveys_dir(self.state_dir) / survey_id).mkdir(parents=True)
+        survey_dir = surveys_dir(self.state_dir) / survey_id
+        survey_dir.mkdir(parents=True)
+        chosen = given if given is not None else self._mission_area
+        if chosen is not None:
+            self._keep_area(survey_dir, chosen)
         self._open(state, resumed=False)
         return survey_id
+
+    def _adopt_area(self, area: SurveyArea | None) -> None:
+        """The open survey takes ``area`` if it has none yet."""
+        folder, coverage = self._survey_dir, self.coverage
+        if area is None or folder is None or coverage is None or (folder / AREA_FILE).exists():
+            return
+        self._keep_area(folder, area)
+        coverage.area = area
+
+    @staticmethod
+    def _keep_area(survey_dir: Path, area: SurveyArea) -> None:
+        """Write the survey's area into its folder (a failure is logged: the survey
+        records without it)."""
+        feature = {"type": "Feature", "properties": {}, "geometry": area_geojson(area)}
+        try:
+            tmp = survey_dir / f".{AREA_FILE}.tmp"
+            tmp.write_text(json.dumps(feature) + "\n", encoding="utf-8")
+            tmp.replace(survey_dir / AREA_FILE)
+        except OSError as exc:
+            log.error("cannot keep the survey's area", extra={"fields": {"reason": str(exc)}})
+
+    @staticmethod
+    def _survey_area(survey_dir: Path) -> SurveyArea | None:
+        """The area kept in a survey folder, if any (an unreadable one is logged)."""
+        path = survey_dir / AREA_FILE
+        if not path.exists():
+            return None
+        try:
+            return read_area(path)
+        except SeamapError as exc:
+            log.error("survey area unreadable", extra={"fields": {"reason": str(exc)}})
+            return None
 
     def _open(self, state: SurveyState, *, resumed: bool) -> None:
         survey_dir = surveys_dir(self.state_dir) / state.id
@@ -275,6 +348,7 @@ class Daemon:
             tile_memory_mb=self.config.daemon.tile_memory_mb,
         )
         mount = mount_from_config(self.config.sonar)
+        coverage = LiveCoverage(mount, self.config.coverage, self._survey_area(survey_dir))
         mapper = MappingWorker(
             lambda: StreamingEngine(mount, params, spill=DiskSpill(live_tiles)),
             loop=asyncio.get_running_loop(),
@@ -282,7 +356,9 @@ class Daemon:
             on_pose=self._on_pose,
             on_tile=lambda update: self._on_tile(state.id, update),
             segment=recorder.stats.segment,
+            on_final=coverage.add,
         )
+        self.coverage, self._coverage_status = coverage, None
         self.survey, self._survey_dir = state, survey_dir
         self.parts.recorder, self.parts.mapper, self.parts.survey = recorder, mapper, state.id
         self._sonar_follows_survey()
@@ -315,6 +391,9 @@ class Daemon:
         if recorder is not None:
             recorder.close()
         stats = await mapper.finish() if mapper is not None else None
+        coverage, self.coverage = self.coverage, None
+        if coverage is not None:  # every frame is final now: the live map's last word
+            await self._publish_coverage(state.id, coverage)
         state.state, state.ended, state.reason = "finishing", time.time(), reason
         assert self._survey_dir is not None
         if mapper is not None and recorder is not None:
@@ -503,6 +582,8 @@ class Daemon:
                 "seconds": round(time.monotonic() - started, 1),
                 "files": report["files"],
             }
+            if "replan" in report:
+                state.result["replan"] = report["replan"]
             log.info(
                 "survey mapped",
                 extra={
@@ -529,12 +610,73 @@ class Daemon:
         def progress(stage: str, done: int, total: int) -> None:
             self._pass_progress[survey_id] = f"{stage} {done}/{total}"
 
-        report = replay_survey(survey_dir, self.config, survey_dir, progress=progress)
+        area = survey_dir / AREA_FILE
+        report = replay_survey(
+            survey_dir, self.config, survey_dir, progress=progress,
+            area=area if area.exists() else None,
+        )  # fmt: skip
+        final = final_message(survey_dir, survey_id, int(time.time() * 1000))
+        if final is not None:
+            self._loop_call(self._final_coverage, survey_id, final)
         if self.publisher is not None:
             self._pass_progress[survey_id] = "publishing tiles"
             report["tiles_published"] = self.publisher.final_tiles(survey_id, survey_dir)
             self.publisher.survey_ended(survey_id)
+            if final is not None:
+                self.publisher.coverage(survey_id, final)
+        if self.config.mission.replan_at_end and area.exists():
+            self._pass_progress[survey_id] = "planning the gaps"
+            report["replan"] = self._replan(survey_dir, area)
         return report
+
+    def _replan(self, survey_dir: Path, area: Path) -> dict[str, Any]:
+        """Plan lanes over the survey's gaps into the survey folder (``REPLAN_FILE``), from
+        where the boat ended, for the autopilot that was heard; what came of it (a
+        failure is said in the summary and the log, never fails the pass)."""
+        from seamap.replan_files import replan_survey
+
+        link = self.parts.mavlink
+        firmware = "px4" if link is not None and link.stats.autopilot == "px4" else "ardupilot"
+        try:
+            summary = replan_survey(
+                area, survey_dir / REPLAN_FILE, self.config, survey=survey_dir, firmware=firmware
+            )
+        except SeamapError as exc:
+            log.warning("gaps not planned", extra={"fields": {"reason": str(exc)}})
+            return {"error": str(exc)}
+        if not summary["gaps"]:
+            for stale in survey_dir.glob("replan.*"):  # an earlier run's plan is not this one's
+                stale.unlink(missing_ok=True)
+            log.info("no gap to plan: the survey covered its area")
+            return {"gaps": 0, "files": []}
+        files = [Path(f).name for f in summary["files"]]
+        log.info(
+            "gaps planned (start it with `seamap survey start`)",
+            extra={"fields": {"gaps": summary["gaps"], "gaps_m2": summary["gaps_m2"],
+                              "lanes": summary["lanes"], "plan": str(survey_dir / REPLAN_FILE),
+                              "covers": summary["coverage"]}},
+        )  # fmt: skip
+        return {
+            "gaps": summary["gaps"],
+            "gaps_m2": summary["gaps_m2"],
+            "lanes": summary["lanes"],
+            "distance_m": summary["distance_m"],
+            "duration_s": summary["duration_s"],
+            "coverage": summary["coverage"],
+            "unreachable": summary["unreachable"],
+            "files": files,
+        }
+
+    def _loop_call(self, callback: Any, *args: Any) -> None:
+        """Run ``callback(*args)`` on the event loop (from the survey-end pass's thread)."""
+        if self._loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed
+                self._loop.call_soon_threadsafe(callback, *args)
+
+    def _final_coverage(self, survey_id: str, message: CoverageMessage) -> None:
+        """A survey's final coverage becomes the status's, unless another survey is open."""
+        if self.survey is None:
+            self._coverage_status = message.status()
 
     async def _extend_stop_timeout(self, survey_id: str) -> None:
         """While a pass runs during shutdown, keep systemd's stop timeout ahead of it."""
@@ -564,6 +706,11 @@ class Daemon:
 
     def _on_ping(self, ping: Ping) -> None:
         self.parts.last_ping = ping.time
+        coverage = self.coverage
+        if coverage is not None and coverage.fan is None:
+            # The fan of the first ping, as the survey-end pass takes it.
+            preprocess = pipeline_params(self.config).preprocess
+            coverage.set_fan(SonarFan.of_ping(ping, coverage.mount, preprocess))
         mapper = self.parts.mapper
         if mapper is not None:
             mapper.submit(ping)
@@ -655,6 +802,33 @@ class Daemon:
                 log.error("watchdog withheld: recorder or mapping stalled")
             await asyncio.sleep(interval / 2)
 
+    async def _coverage_task(self) -> None:
+        """The open survey's live coverage, every ``COVERAGE_EVERY_S`` while it grows."""
+        counted = -1
+        while True:
+            await asyncio.sleep(COVERAGE_EVERY_S)
+            coverage, state = self.coverage, self.survey
+            if coverage is None or state is None or coverage.frames == counted:
+                continue
+            counted = coverage.frames
+            await self._publish_coverage(state.id, coverage)
+
+    async def _publish_coverage(self, survey_id: str, coverage: LiveCoverage) -> None:
+        """Make the live coverage's publication (off the loop), show it in the status and
+        hand it to zenoh; a failure is logged, never raised."""
+        try:
+            message = await asyncio.to_thread(coverage.message, survey_id)
+        except Exception as exc:
+            log.warning("live coverage failed", extra={"fields": {"reason": str(exc)}})
+            log.debug("live coverage failure", exc_info=True)
+            return
+        if message is None:
+            return
+        if self.survey is None or self.survey.id == survey_id:
+            self._coverage_status = message.status()
+        if self.publisher is not None:
+            self.publisher.coverage(survey_id, message)
+
     async def _zenoh_task(self) -> None:
         assert self.publisher is not None
         session = await asyncio.to_thread(open_session, self.config.zenoh)
@@ -676,7 +850,13 @@ class Daemon:
         """A survey request from zenoh: ``{"action": "start"|"stop"|"status"}``."""
         action = request.get("action")
         if action == "start":
-            return {"ok": True, "survey": await self.start_survey("zenoh")}
+            area = request.get("area")
+            if area is not None and not isinstance(area, dict):
+                return {"ok": False, "error": "area must be a GeoJSON object"}
+            try:
+                return {"ok": True, "survey": await self.start_survey("zenoh", area)}
+            except SeamapError as exc:
+                return {"ok": False, "error": str(exc)}
         if action == "stop":
             return {"ok": True, "survey": await self.stop_survey("zenoh", wait=False)}
         if action == "status":
@@ -702,6 +882,7 @@ class Daemon:
             "epsg": pose.epsg,
         }  # fmt: skip
         snapshot["tiles_published"] = self.tiles_published
+        snapshot["coverage"] = self._coverage_status
         return snapshot
 
     def _survey_id(self) -> str | None:

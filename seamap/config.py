@@ -199,6 +199,23 @@ class CoverageConfig:
 
 
 @dataclass(frozen=True)
+class MissionConfig:
+    """What the daemon knows of the survey's mission: its area, for the live covered
+    fraction and the gaps at the end, and whether to plan the gaps' lanes then."""
+
+    area: str = ""
+    """The survey area (GeoJSON polygon, holes kept out, or a lat,lon list; as ``seamap
+    survey plan --area``) of every survey the daemon opens without an area of its own (a
+    lease surveyed again and again); empty: none. A relative path is taken from the
+    config file's folder. A survey started by ``seamap survey start`` takes its plan's
+    area instead, ``seamap ctl start --area`` the one given."""
+    replan_at_end: bool = False
+    """When a survey with an area ends, plan lanes over its gaps (``seamap survey
+    replan``) into the survey folder as ``replan.plan`` (and .waypoints, .geojson, .png),
+    from where the boat ended; starting it stays a person's decision."""
+
+
+@dataclass(frozen=True)
 class SiteConfig:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sonar: SonarConfig = field(default_factory=SonarConfig)
@@ -206,6 +223,7 @@ class SiteConfig:
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
+    mission: MissionConfig = field(default_factory=MissionConfig)
 
 
 _CHOICES: dict[tuple[str, str], tuple[Any, ...]] = {
@@ -308,8 +326,9 @@ _TEXT: dict[tuple[str, str], Callable[[str], str | None]] = {
 """Checks of text values (of each item, for lists): None, or why the value is wrong.
 ``("zenoh", "config_file")`` is free: empty means none, and the file is read when used."""
 
-FREE_KEYS = frozenset({("zenoh", "config_file")})
-"""Keys whose type is their only check (true/false keys are also only typed)."""
+FREE_KEYS = frozenset({("zenoh", "config_file"), ("mission", "area")})
+"""Keys whose type is their only check (true/false keys are also only typed); their files
+are read when used (the daemon reads ``[mission] area`` at start)."""
 
 
 def _coerce(where: str, value: Any, annotation: Any) -> Any:
@@ -445,9 +464,14 @@ def load_config(path: str | Path | None) -> SiteConfig:
     except tomllib.TOMLDecodeError as exc:
         raise SeamapError(f"{path}: not valid TOML ({exc})") from None
     try:
-        return config_from_dict(data)
+        config = config_from_dict(data)
     except SeamapError as exc:
         raise SeamapError(f"{path}: {exc}") from None
+    area = config.mission.area
+    if area and not Path(area).is_absolute():  # from the file's folder, not the cwd
+        mission = dataclasses.replace(config.mission, area=str(path.parent / area))
+        config = dataclasses.replace(config, mission=mission)
+    return config
 
 
 def _toml_value(value: Any) -> str:
@@ -481,6 +505,7 @@ __all__ = [
     "DaemonConfig",
     "MappingConfig",
     "MavlinkConfig",
+    "MissionConfig",
     "SiteConfig",
     "SonarConfig",
     "ZenohConfig",

@@ -56,14 +56,36 @@ def read_area(path: Path) -> SurveyArea:
         raise SeamapError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise SeamapError(f"{path}: cannot read the area ({exc})") from None
+    geojson = path.suffix.lower() in (".geojson", ".json") or text.lstrip().startswith("{")
+    return parse_area(text, str(path), geojson=geojson)
+
+
+def parse_area(text: str, name: str, *, geojson: bool = True) -> SurveyArea:
+    """The area in ``text`` (GeoJSON, or a lat,lon list when not ``geojson``) in its UTM
+    frame; SeamapError (one line, starting with ``name``) if it is not a usable area."""
     try:
-        if path.suffix.lower() in (".geojson", ".json") or text.lstrip().startswith("{"):
-            polygons = _geojson_polygons(text)
-        else:
-            polygons = _latlon_polygon(text)
+        polygons = _geojson_polygons(text) if geojson else _latlon_polygon(text)
         return _to_local(polygons)
     except (SeamapError, PlanningError) as exc:
-        raise SeamapError(f"{path}: {exc}") from None
+        raise SeamapError(f"{name}: {exc}") from None
+
+
+def area_geojson(survey: SurveyArea) -> dict[str, Any]:
+    """The area as a GeoJSON MultiPolygon geometry (WGS84 [lon, lat], holes kept), as read:
+    what ``parse_area`` reads back to the same area."""
+    return {
+        "type": "MultiPolygon",
+        "coordinates": [
+            [[[float(lon), float(lat)] for lat, lon in _closed(ring)] for ring in rings]
+            for rings in survey.polygons_latlon
+        ],
+    }
+
+
+def _closed(ring: FloatArray) -> FloatArray:
+    if len(ring) and not np.array_equal(ring[0], ring[-1]):
+        return np.vstack([ring, ring[:1]])
+    return ring
 
 
 def _geojson_polygons(text: str) -> list[list[FloatArray]]:

@@ -56,10 +56,14 @@ def qgc_plan(
     home: tuple[float, float],
     firmware: str = "ardupilot",
     keepouts: list[FloatArray] | None = None,
+    area: dict[str, Any] | None = None,
 ) -> str:
     """A QGroundControl .plan (JSON text): DO_CHANGE_SPEED, then the waypoints (lat, lon
     degrees) at altitude 0 relative to home; keep-outs (rings of lat/lon) as exclusion
-    fence polygons."""
+    fence polygons; ``area``, the GeoJSON geometry (WGS84) the mission is to cover, as
+    ``"seamap": {"version": 1, "area": ...}`` beside QGroundControl's own keys (which
+    QGroundControl and MAVSDK leave alone): ``seamap survey start`` hands it to the
+    daemon for the survey's coverage. Not a fence: turns and lead-ins lie outside it."""
     items: list[dict[str, Any]] = [
         {
             "type": "SimpleItem",
@@ -109,6 +113,8 @@ def qgc_plan(
         "geoFence": {"version": 2, "circles": [], "polygons": fences},
         "rallyPoints": {"version": 2, "points": []},
     }
+    if area is not None:
+        plan["seamap"] = {"version": 1, "area": area}
     return json.dumps(plan, indent=2) + "\n"
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import shapely
 
 from planning.area import PlanningError
@@ -33,7 +34,7 @@ from planning.plan import SurveyPlan
 from planning.swath import Swath, sonar_swath
 from seamap.config import SiteConfig
 from seamap.errors import SeamapError
-from seamap.plan_area import SurveyArea, located_message, read_area
+from seamap.plan_area import SurveyArea, area_geojson, located_message, read_area
 from seamap.plan_export import (
     FIRMWARE_TYPES,
     MAV_CMD_DO_CHANGE_SPEED,
@@ -256,23 +257,40 @@ def write_plan_files(
 ) -> list[str]:
     """Write PLAN.plan, .waypoints, .geojson (``geojson``, the text) and .png (``title``,
     ``gaps`` drawn) next to ``out``; the planned home is ``home`` (lat, lon), else the
-    first waypoint. Returns the four paths; SeamapError (one line) if they cannot be
-    written."""
+    first waypoint. The .plan carries what the mission is to cover (``qgc_plan``'s
+    ``area``): the gaps when given, else the area. Returns the four paths; SeamapError
+    (one line) if they cannot be written."""
     base = Path(out)
     if base.suffix.lower() == ".plan":
         base = base.with_suffix("")
     paths = [base.with_name(base.name + ext) for ext in (".plan", ".waypoints", ".geojson", ".png")]
     holes = [ring for polygon in survey.polygons_latlon for ring in polygon[1:]]
     home_latlon = home if home is not None else waypoints[0]
+    target = _gaps_geometry(gaps, survey) if gaps else area_geojson(survey)
     try:
         base.parent.mkdir(parents=True, exist_ok=True)
-        _write_text(paths[0], qgc_plan(waypoints, speed_mps, home_latlon, firmware, holes))
+        _write_text(paths[0], qgc_plan(waypoints, speed_mps, home_latlon, firmware, holes, target))
         _write_text(paths[1], mission_planner_waypoints(waypoints, speed_mps, home_latlon))
         _write_text(paths[2], geojson)
         write_png(paths[3], survey, plan, swath, title, gaps)
     except OSError as exc:
         raise SeamapError(f"{out}: cannot write the plan ({exc})") from None
     return [str(p) for p in paths]
+
+
+def _gaps_geometry(gaps: Sequence[shapely.Polygon], survey: SurveyArea) -> dict[str, Any]:
+    """The gaps (local metres of the area's frame) as a GeoJSON MultiPolygon (WGS84)."""
+    frame = survey.frame
+    polygons = []
+    for gap in gaps:
+        oriented = shapely.geometry.polygon.orient(gap, 1.0)
+        rings = []
+        for ring in (oriented.exterior, *oriented.interiors):
+            xy = np.asarray(ring.coords)
+            lat, lon = frame.to_latlon(xy[:, 0], xy[:, 1])
+            rings.append(np.round(np.column_stack([lon, lat]), 9).tolist())
+        polygons.append(rings)
+    return {"type": "MultiPolygon", "coordinates": polygons}
 
 
 def _centre(survey: SurveyArea) -> tuple[float, float]:

@@ -171,10 +171,9 @@ COVERAGE_COLOURS = {
 }
 
 
-def write_coverage_png(path: Path, grid: CoverageGrid, min_passes: int) -> None:
-    """The coverage for eyes, one pixel a cell, north-up: transparent where no pass saw
-    the cell, orange below the bar, light green at it, green above it."""
-    passes = grid.passes
+def coverage_image(passes: npt.NDArray[np.uint16], min_passes: int) -> npt.NDArray[np.uint8]:
+    """The coverage for eyes (BGRA, OpenCV's order), one pixel a cell: transparent where no
+    pass saw the cell, orange below the bar, light green at it, green above it."""
     image = np.zeros((*passes.shape, 4), np.uint8)
     seen = passes > 0
     for name, where in (
@@ -183,10 +182,15 @@ def write_coverage_png(path: Path, grid: CoverageGrid, min_passes: int) -> None:
         ("above_bar", passes > min_passes),
     ):
         image[where] = (*COVERAGE_COLOURS[name], 255)
-    write_png(path, image if image.size else np.zeros((1, 1, 4), np.uint8))
+    return image if image.size else np.zeros((1, 1, 4), np.uint8)
 
 
-def write_gaps(path: Path, gaps: tuple[shapely.Polygon, ...], frame: LocalFrame) -> None:
+def write_coverage_png(path: Path, grid: CoverageGrid, min_passes: int) -> None:
+    """``coverage_image`` of the raster as a PNG (RGBA), north-up."""
+    write_png(path, coverage_image(grid.passes, min_passes))
+
+
+def gaps_geojson(gaps: tuple[shapely.Polygon, ...], frame: LocalFrame) -> dict[str, Any]:
     """The gaps (local metres) as a GeoJSON FeatureCollection of WGS84 polygons (RFC 7946:
     [longitude, latitude], outer rings counterclockwise, holes clockwise), each with its
     ``id`` (1 the largest) and ``area_m2``."""
@@ -208,17 +212,31 @@ def write_gaps(path: Path, gaps: tuple[shapely.Polygon, ...], frame: LocalFrame)
                 "geometry": {"type": "Polygon", "coordinates": coordinates},
             }
         )
+    return {"type": "FeatureCollection", "features": features}
+
+
+def write_gaps(path: Path, gaps: tuple[shapely.Polygon, ...], frame: LocalFrame) -> None:
+    """``gaps_geojson`` as a file."""
     with _atomic(path) as stream:
-        json.dump({"type": "FeatureCollection", "features": features}, stream)
+        json.dump(gaps_geojson(gaps, frame), stream)
         stream.write("\n")
 
 
-def write_png(path: Path, image: npt.NDArray[np.uint8]) -> None:
+def png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
+    """An image (grey, BGR or BGRA, OpenCV's order) as PNG bytes."""
     ok, data = cv2.imencode(".png", image)
     if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
+        raise ValueError("PNG encoding failed")
+    return bytes(data.tobytes())
+
+
+def write_png(path: Path, image: npt.NDArray[np.uint8]) -> None:
+    try:
+        data = png_bytes(image)
+    except ValueError:
+        raise OSError(f"{path}: PNG encoding failed") from None
     with _atomic(path, "wb") as stream:
-        stream.write(data.tobytes())
+        stream.write(data)
 
 
 def write_trajectory(

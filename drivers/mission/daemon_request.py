@@ -79,9 +79,12 @@ def _on_loopback(endpoint: str) -> str:
     return endpoint.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:")
 
 
-def request_survey_start(target: DaemonTarget, timeout_s: float = 10.0) -> DaemonAnswer:
+def request_survey_start(
+    target: DaemonTarget, timeout_s: float = 10.0, area: dict[str, Any] | None = None
+) -> DaemonAnswer:
     """Ask the daemon to open a survey: a zenoh ``get`` on its control key with payload
-    ``{"action": "start"}``; its reply ``{"ok": true, "survey": ID}`` (the survey already
+    ``{"action": "start"}`` (and ``"area"``: the GeoJSON geometry the mission covers, when
+    given); its reply ``{"ok": true, "survey": ID}`` (the survey already
     open, if one is: asking again is harmless). Tried up to ATTEMPTS times while the daemon
     cannot be reached or nothing answers; blocks up to about ``timeout_s``; never raises."""
     from seamap import zenoh_io
@@ -89,7 +92,7 @@ def request_survey_start(target: DaemonTarget, timeout_s: float = 10.0) -> Daemo
     deadline = time.monotonic() + timeout_s
     answer = DaemonAnswer(None, "not asked")
     for _ in range(ATTEMPTS):
-        answer, retry = _ask_daemon(target, deadline)
+        answer, retry = _ask_daemon(target, deadline, area)
         if answer.survey is not None or not retry or deadline - time.monotonic() < 1.0:
             break
         log.info("daemon: %s; asking again", answer.problem)
@@ -100,7 +103,9 @@ def request_survey_start(target: DaemonTarget, timeout_s: float = 10.0) -> Daemo
     return answer
 
 
-def _ask_daemon(target: DaemonTarget, deadline: float) -> tuple[DaemonAnswer, bool]:
+def _ask_daemon(
+    target: DaemonTarget, deadline: float, area: dict[str, Any] | None = None
+) -> tuple[DaemonAnswer, bool]:
     """One request; the answer (``problem`` None: nobody answered) and whether to retry."""
     from seamap import zenoh_io
 
@@ -110,7 +115,10 @@ def _ask_daemon(target: DaemonTarget, deadline: float) -> tuple[DaemonAnswer, bo
         where = ", ".join(target.zenoh.connect)
         return DaemonAnswer(None, f"cannot reach the daemon at {where} ({_short(str(exc))})"), True
     try:
-        payload = zenoh_io.json_bytes({"action": "start"})
+        request: dict[str, Any] = {"action": "start"}
+        if area is not None:
+            request["area"] = area
+        payload = zenoh_io.json_bytes(request)
         key = zenoh_io.control_key(target.vehicle)
         timeout_s = max(deadline - time.monotonic(), 0.1)
         problem = None

@@ -2,8 +2,10 @@
 
 A plan is JSON: ``mission.items`` of SimpleItems with command, frame, params and
 autoContinue (the waypoints QGroundControl stored for a survey or corridor scan are taken
-too); ``mission.plannedHomePosition``; ``mission.firmwareType`` 3 = ArduPilot, 12 = PX4.
-Anything else is a ``SeamapError`` naming the file and what is wrong with it.
+too); ``mission.plannedHomePosition``; ``mission.firmwareType`` 3 = ArduPilot, 12 = PX4;
+and, in plans ``seamap survey plan`` wrote, ``seamap.area``: the GeoJSON geometry the
+mission is to cover (for the daemon's coverage; its polygons are checked by whoever uses
+it). Anything else is a ``SeamapError`` naming the file and what is wrong with it.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class Plan:
     """plannedHomePosition: latitude, longitude (degrees), altitude AMSL (metres)."""
     firmware: Firmware | None
     """From mission.firmwareType; None when the plan is for any autopilot."""
+    area: dict[str, Any] | None = None
+    """``seamap.area``: the GeoJSON geometry (WGS84) the mission is to cover, if given."""
 
 
 def load_plan(path: str | Path) -> Plan:
@@ -102,7 +106,11 @@ def _plan_from(path: Path, data: Any) -> Plan:
         home = (float(home[0]), float(home[1]), float(home[2]))
     firmware_type = mission.get("firmwareType")
     firmware = _QGC_FIRMWARE.get(firmware_type) if isinstance(firmware_type, int) else None
-    return Plan(path, tuple(items), home, firmware)
+    extra = data.get("seamap")
+    area = extra.get("area") if isinstance(extra, dict) else None
+    if area is not None and not (isinstance(area, dict) and isinstance(area.get("type"), str)):
+        raise _BadPlan("seamap.area is not a GeoJSON geometry")
+    return Plan(path, tuple(items), home, firmware, area)
 
 
 def _items_of(where: str, raw: Any) -> list[PlanItem]:

@@ -1,4 +1,4 @@
-"""``seamap ctl --config FILE status|start|stop``: talk to the running daemon."""
+"""``seamap ctl --config FILE status|start|stop [--area AREA]``: talk to the running daemon."""
 
 from __future__ import annotations
 
@@ -16,12 +16,19 @@ def register(subparsers: Any) -> None:
         help="ask the running daemon for its status, or to start or stop a survey",
         description=(
             "Talk to the running daemon through its control socket (state_dir/control.sock): "
-            "status prints its health as JSON; start opens a survey; stop ends it (the "
-            "survey-end pass then writes the result folder)."
+            "status prints its health as JSON; start opens a survey (--area: the area it is "
+            "to cover, for the covered fraction live and the gaps at the end); stop ends it "
+            "(the survey-end pass then writes the result folder)."
         ),
     )
     parser.add_argument("action", choices=("status", "start", "stop"))
     parser.add_argument("--config", type=Path, help="the daemon's site TOML file")
+    parser.add_argument(
+        "--area",
+        type=Path,
+        help="with start: the survey's area (GeoJSON polygon, holes kept out, or a lat,lon "
+        "list), instead of the config's [mission] area",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -30,7 +37,14 @@ def run(args: argparse.Namespace) -> int:
     from seamap.config import load_config
 
     config = load_config(args.config)
-    reply = request(Path(config.daemon.state_dir) / "control.sock", args.action)
+    extra: dict[str, Any] = {}
+    if args.area is not None:
+        if args.action != "start":
+            raise SeamapError(f"--area goes with start, not {args.action}")
+        from seamap.plan_area import area_geojson, read_area
+
+        extra["area"] = area_geojson(read_area(args.area))
+    reply = request(Path(config.daemon.state_dir) / "control.sock", args.action, **extra)
     if not reply.get("ok"):
         raise SeamapError(f"the daemon refused: {reply.get('error')}")
     if args.action == "status":

@@ -320,6 +320,7 @@ def run_start(args: argparse.Namespace) -> int:
 
     from drivers import mission
     from seamap.config import load_config
+    from seamap.plan_area import parse_area
 
     _check_timeout(args)
     # Everything that can be wrong with the command line is found before the boat moves.
@@ -328,6 +329,8 @@ def run_start(args: argparse.Namespace) -> int:
     config = load_config(args.config) if args.config is not None else None
     target = mission.daemon_target(config, args.daemon, args.vehicle)
     firmware = mission.Firmware(args.firmware) if args.firmware else None
+    if plan.area is not None:  # checked before the boat moves: the daemon would refuse it
+        parse_area(json.dumps(plan.area), f"{args.plan}: the plan's seamap.area")
 
     started = asyncio.run(mission.start_survey(plan, url, args.timeout, firmware))
     ready = started.readiness
@@ -343,9 +346,10 @@ def run_start(args: argparse.Namespace) -> int:
             "open one with `seamap ctl start`"
         )
         return 0
-    answer = mission.request_survey_start(target, timeout_s=min(args.timeout, 10.0))
+    answer = mission.request_survey_start(target, timeout_s=min(args.timeout, 10.0), area=plan.area)
     if answer.survey is not None:
-        print(f"survey {answer.survey} recording on {target.vehicle}")
+        covering = " (covering the plan's area)" if plan.area is not None else ""
+        print(f"survey {answer.survey} recording on {target.vehicle}{covering}")
         return 0
     # The boat is under way: undoing the mission would leave it holding on the water, and
     # a survey can still be opened by hand; so say so and let it run.

@@ -35,14 +35,18 @@ def write_config(
     mavlink_url: str,
     zenoh_port: int | None = None,
     mapping: dict[str, Any] | None = None,
+    tables: dict[str, dict[str, Any]] | None = None,
     **daemon: Any,
 ) -> Path:
     """The simulated survey's site config pointed at the emulators and ``state_dir``, its
-    zenoh endpoint on 127.0.0.1; ``mapping`` and ``daemon`` override keys of those tables."""
+    zenoh endpoint on 127.0.0.1; ``mapping`` and ``daemon`` override keys of those tables,
+    ``tables`` keys of any table (``{"mission": {"replan_at_end": True}}``)."""
     data = tomllib.loads((sim_dir / "site.toml").read_text())
     data.setdefault("mapping", {}).update(mapping or {})
+    for table, keys in (tables or {}).items():
+        data.setdefault(table, {}).update(keys)
     data.setdefault("daemon", {}).update(
-        state_dir=str(state_dir), survey_autostart=True, health_interval_s=2.0, **daemon
+        {"state_dir": str(state_dir), "survey_autostart": True, "health_interval_s": 2.0, **daemon}
     )
     data.setdefault("sonar", {}).update(
         address="127.0.0.1", tcp_port=sonar_port, status_port=free_udp_port()

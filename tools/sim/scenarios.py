@@ -165,6 +165,10 @@ class Scenario:
     about 15-90 s later."""
     lane_spacing_m: float = 4.0
     n_lanes: int = 3
+    skip_lanes: tuple[int, ...] = ()
+    """Lanes (numbered from 0 across) the mission plans but the boat does not drive (a
+    waypoint skipped, a lane cut short by the operator): the stripe of seabed between
+    the lanes either side is left out (``trajectory.lawnmower``)."""
     run_in_m: float = 2.0
     """Straight approach before the first lane and after the last (metres)."""
     turn_radius_m: float = 2.0
@@ -477,6 +481,12 @@ def _check_value(name: str, value: Any, annotation: Any) -> Any:
         return value
     if annotation is bool and isinstance(value, bool):
         return value
+    if annotation == tuple[int, ...]:
+        if isinstance(value, list | tuple) and all(
+            isinstance(v, int) and not isinstance(v, bool) for v in value
+        ):
+            return tuple(value)
+        raise SeamapError(f"simulate: {name} = {value!r} is not a list of integers")
     if typing.get_origin(annotation) in (tuple, dict):
         return value
     raise SeamapError(
@@ -518,6 +528,12 @@ def parse_overrides(texts: dict[str, str]) -> dict[str, Any]:
         kind = next((a for a in args if a is not type(None)), hints[key])
         if optional and text.strip().lower() == "none":
             values[key] = None
+            continue
+        if hints[key] == tuple[int, ...]:  # a comma-separated list, e.g. skip_lanes=2,5
+            try:
+                values[key] = tuple(int(part) for part in text.split(",") if part.strip())
+            except ValueError:
+                raise SeamapError(f"simulate: {key} = {text!r} is not a list of integers") from None
             continue
         try:
             values[key] = kind(text) if kind in (int, float, str) else None
@@ -561,6 +577,10 @@ def _validate(s: Scenario) -> None:
         problems.append("wave periods and ripple wavelengths must be positive")
     if s.lane_spacing_m <= 0 or s.n_lanes < 1 or s.lane_length_m <= 0:
         problems.append("the lawnmower needs n_lanes >= 1 and positive lane length and spacing")
+    if any(not 0 <= lane < s.n_lanes for lane in s.skip_lanes):
+        problems.append(f"skip_lanes {list(s.skip_lanes)}: lanes are 0 to {s.n_lanes - 1}")
+    elif len(set(s.skip_lanes)) >= s.n_lanes:
+        problems.append("skip_lanes leaves no lane to drive")
     if not 0.0 < s.tilt_deg < 60.0:
         problems.append(f"tilt_deg {s.tilt_deg} is not in (0, 60)")
     if problems:

@@ -212,8 +212,8 @@ def _write_sonar(path: Path, s: Scenario, source: PingSource) -> None:
 def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> SimulationSummary:
     """Simulate survey ``scenario`` with ``seed`` into folder ``out`` (created if needed).
 
-    Writes sonar.oculus, nav.tlog, truth.json, seabed.tif, seabed_height.tif and site.toml
-    (see ``tools.sim.writer`` for what each holds). ``overrides`` replace scenario fields,
+    Writes sonar.oculus, nav.tlog, truth.json, seabed.tif, seabed_height.tif, site.toml
+    and area.geojson (see ``tools.sim.writer`` for what each holds). ``overrides`` replace scenario fields,
     e.g. ``flavour="px4"``, ``max_pings=20``, ``duration_s=30``, ``n_beams=128``,
     ``range_resolution_m``, ``ping_rate_hz``, ``current_mps``, ``gps_bias_sigma_m``,
     ``sonar_latency_s``, ``randomise=False``; an override is never redrawn by the field
@@ -244,6 +244,7 @@ def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> Simulatio
     seabed_section = writer.write_seabed(out, seabed, site)
     config_path = out / "site.toml"
     writer.write_site_config(config_path, writer.site_config(s, mean_altitude(s, frames)), s)
+    writer.write_area(out / "area.geojson", s, site)
     ping_truth = PingTruth(plan.ids, plan.acquisition, plan.receive, source.assist_db, frames.state)
     truth = build_truth(
         s, seed, overrides, site, setup.survey_path, seabed, setup.model, ping_truth, streams,

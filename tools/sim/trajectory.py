@@ -103,19 +103,23 @@ class SurveyPath:
 
 def lawnmower(s: Scenario) -> SurveyPath:
     """The survey path: n_lanes lanes of lane_length_m, lane_spacing_m apart, centred on
-    the survey centre, the first along lane_bearing_deg, with U-turns between them."""
+    the survey centre, the first along lane_bearing_deg, with U-turns between them.
+
+    Lanes in ``skip_lanes`` (numbered from 0 across) are planned but not driven: the boat
+    turns from the lane before them straight into the lane after, a wider U-turn, and the
+    lanes it drives keep alternating direction. ``lanes`` holds the driven lanes only."""
     beta = math.radians(s.lane_bearing_deg)
     across = (math.sin(beta + math.pi / 2), math.cos(beta + math.pi / 2))
-    radius = min(s.turn_radius_m, s.lane_spacing_m / 2)
+    driven = [lane for lane in range(s.n_lanes) if lane not in s.skip_lanes]
     segments: list[Segment] = []
     lanes: list[tuple[float, float, float, float]] = []
-    for lane in range(s.n_lanes):
+    for k, lane in enumerate(driven):
         offset = (lane - (s.n_lanes - 1) / 2) * s.lane_spacing_m
-        bearing = beta if lane % 2 == 0 else beta + math.pi
+        bearing = beta if k % 2 == 0 else beta + math.pi
         half = s.lane_length_m / 2
         length = s.lane_length_m
-        before = s.run_in_m if lane == 0 else 0.0
-        after = s.run_in_m if lane == s.n_lanes - 1 else 0.0
+        before = s.run_in_m if k == 0 else 0.0
+        after = s.run_in_m if k == len(driven) - 1 else 0.0
         start_e = s.survey_centre_east_m + offset * across[0] - (half + before) * math.sin(bearing)
         start_n = s.survey_centre_north_m + offset * across[1] - (half + before) * math.cos(bearing)
         segments.append(Segment(start_e, start_n, bearing, length + before + after))
@@ -129,11 +133,13 @@ def lawnmower(s: Scenario) -> SurveyPath:
                 lane_n + length * math.cos(bearing),
             )
         )
-        if lane == s.n_lanes - 1:
+        if k == len(driven) - 1:
             break
-        turn = 1 if lane % 2 == 0 else -1  # the next lane is always to the right of lane 0
+        turn = 1 if k % 2 == 0 else -1  # the next lane is always to the right of lane 0
+        width = (driven[k + 1] - lane) * s.lane_spacing_m
+        radius = min(s.turn_radius_m, width / 2)
         e, n, b = segments[-1].end()
-        straight = s.lane_spacing_m - 2 * radius
+        straight = width - 2 * radius
         if straight < 1e-9:
             segments.append(Segment(e, n, b, math.pi * radius, turn, radius))
             continue

@@ -1,4 +1,5 @@
-"""The survey folder's maps and config: seabed.tif, seabed_height.tif, site.toml.
+"""The survey folder's maps, config and area: seabed.tif, seabed_height.tif, site.toml,
+area.geojson.
 
 (``truth.json`` is ``truth.py``'s, ``sonar.oculus`` ``survey.py``'s, ``nav.tlog``
 ``tlog.py``'s.)
@@ -9,15 +10,20 @@ seabed_height.tif: int16, same grid: height above the seabed's mean plane in uni
 ``height_scale_m`` (0.1 mm; also the band's GDAL scale).
 site.toml: the SiteConfig of the simulated boat (mount, altitude, ping rate, declination,
 the IMU message of the flavour): what its crew would know, not the field day's errors.
+area.geojson: the area the survey's lanes were planned for (``area_geojson``), what its
+crew would give ``seamap replay --area`` or the daemon for the survey's coverage and gaps.
 """
 
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import rasterio
 from affine import Affine
 
@@ -71,6 +77,55 @@ def write_seabed(folder: Path, seabed: Seabed, site: SiteFrame) -> dict[str, Any
         "height_px": h,
         "reflectivity_scale": "pixel = round(255 * reflectivity), 1..255; 0 = no data",
     }
+
+
+AREA_LEAD_IN_M = 3.0
+"""How far the lanes run past the survey area at either end, as a planner's lead-in: the
+forward-looking fan first sees the seabed about 2.3 m ahead of the boat (1 m altitude,
+15 degrees tilt), so a lane that begins 3 m before the area sees it from its edge."""
+
+
+def area_geojson(s: Scenario, site: SiteFrame) -> dict[str, Any]:
+    """The area the survey's lawnmower was planned for, as a GeoJSON Feature (WGS84
+    [lon, lat], counterclockwise): every planned lane (skipped ones too) answers for a
+    band one lane spacing wide, and the lanes run ``AREA_LEAD_IN_M`` past both ends."""
+    beta = math.radians(s.lane_bearing_deg)
+    along = np.array([math.sin(beta), math.cos(beta)])
+    across = np.array([math.sin(beta + math.pi / 2), math.cos(beta + math.pi / 2)])
+    half_across = s.n_lanes * s.lane_spacing_m / 2
+    half_along = max(s.lane_length_m / 2 - AREA_LEAD_IN_M, s.lane_length_m / 4)
+    centre = np.array([s.survey_centre_east_m, s.survey_centre_north_m])
+    corners = [
+        centre + a * half_along * along + c * half_across * across
+        for a, c in ((-1, -1), (-1, 1), (1, 1), (1, -1))
+    ]
+    ring = np.array(corners + corners[:1])
+    if shoelace(ring) < 0:  # RFC 7946: exterior rings counterclockwise
+        ring = ring[::-1]
+    lat, lon = site.to_latlon(ring[:, 0], ring[:, 1])
+    return {
+        "type": "Feature",
+        "properties": {
+            "name": f"{s.name} survey area",
+            "lanes": s.n_lanes,
+            "lane_spacing_m": s.lane_spacing_m,
+            "skipped_lanes": list(s.skip_lanes),
+        },
+        "geometry": {
+            "type": "Polygon",
+            "coordinates": [np.round(np.column_stack([lon, lat]), 9).tolist()],
+        },
+    }
+
+
+def shoelace(ring: npt.NDArray[np.float64]) -> float:
+    """Signed area (m^2) of a closed ring, positive counterclockwise."""
+    x, y = ring[:, 0], ring[:, 1]
+    return float(np.sum(x[:-1] * y[1:] - x[1:] * y[:-1]) / 2)
+
+
+def write_area(path: Path, s: Scenario, site: SiteFrame) -> None:
+    path.write_text(json.dumps(area_geojson(s, site), indent=1) + "\n", encoding="utf-8")
 
 
 def site_config(s: Scenario, altitude_m: float) -> SiteConfig:
