@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import io
+import json
 import logging
 import threading
 from pathlib import Path
@@ -206,8 +207,12 @@ def test_log_lines_carry_fields_and_journald_priorities() -> None:
 class _FakeDaemon:
     def __init__(self) -> None:
         self.survey: str | None = None
+        self.areas: list[dict[str, Any] | None] = []
 
-    async def start_survey(self, reason: str) -> str:
+    async def start_survey(self, reason: str, area: dict[str, Any] | None = None) -> str:
+        if area is not None and area.get("type") != "Polygon":
+            raise SeamapError("area: not a polygon")
+        self.areas.append(area)
         self.survey = self.survey or "20260101-000000"
         return self.survey
 
@@ -243,3 +248,28 @@ def test_control_socket_commands_and_errors(tmp_path: Path) -> None:
     assert not path.exists()  # removed on shutdown
     with pytest.raises(SeamapError, match="no daemon control socket"):
         request(path, "status")
+
+
+def test_control_socket_passes_the_area_and_says_why_it_refuses_one(tmp_path: Path) -> None:
+    path = tmp_path / "control.sock"
+    daemon = _FakeDaemon()
+    polygon = {"type": "Polygon", "coordinates": [[[0.0, 0.0], [1e-4, 0.0], [0.0, 1e-4]]] * 400}
+
+    async def main() -> list[Any]:
+        server = asyncio.create_task(serve_control(daemon, path))
+        while not path.exists():
+            await asyncio.sleep(0.01)
+        replies = [
+            await asyncio.to_thread(request, path, "start", 5.0, area=area)
+            for area in (polygon, {"type": "Point"}, "north field")
+        ]
+        server.cancel()
+        await asyncio.gather(server, return_exceptions=True)
+        return replies
+
+    replies = asyncio.run(main())
+    assert len(json.dumps(polygon)) > 4096  # beyond the old request limit
+    assert replies[0] == {"ok": True, "survey": "20260101-000000"}
+    assert daemon.areas == [polygon]
+    assert replies[1] == {"ok": False, "error": "area: not a polygon"}
+    assert replies[2] == {"ok": False, "error": "area must be a GeoJSON object"}
