@@ -2,8 +2,8 @@
 
 - ``seamap.shore.station``: the zenoh intake (subscriptions, liveliness, catch-up) and
   the files it keeps on disk;
-- ``seamap.shore.state``: what it holds of each vehicle (tiles, track, status) and the
-  file writers;
+- ``seamap.shore.state``: what it holds of each vehicle (tiles, coverage, track, status)
+  and the file writers;
 - ``seamap.shore.web``: the live map page (``--web``), served from its own thread and
   ``static/`` (plain JavaScript).
 

@@ -2,10 +2,11 @@
 
 ``ShoreState`` holds, per vehicle (``HeldVehicle``), whether its liveliness token is up,
 every pose received (its track), its latest status and, per survey (``HeldSurvey``), its
-tiles with their versions. Its ``take_*`` methods validate a payload as received and apply
-it; one that cannot be used raises ``BadPayload`` and changes nothing held. A tile
-replaces the one held only if its attachment's version is higher, so a late ``get`` reply
-never undoes a newer live tile.
+tiles with their versions and its latest coverage (``HeldCoverage``: the summary and the
+raster). Its ``take_*`` methods validate a payload as received and apply it; one that
+cannot be used raises ``BadPayload`` and changes nothing held. A tile, a coverage summary
+or a coverage raster replaces the one held only if its version is higher, so a late
+``get`` reply never undoes a newer live one.
 
 The writers (each atomic, so a reader never sees half a file):
 
@@ -13,7 +14,11 @@ The writers (each atomic, so a reader never sees half a file):
   on its UTM grid, 0 = no data (the result folder's format);
 - ``write_track``: ``track.csv`` and ``track.geojson``, every pose received (poses carry
   no survey id, so the track is the vehicle's);
-- ``write_status``: ``status.json``, the latest status, as received.
+- ``write_status``: ``status.json``, the latest status, as received;
+- ``write_coverage_summary``: ``coverage.json`` (the summary without its gaps) and, when
+  the survey's area is known, ``gaps.geojson`` (the summary's gaps, WGS84);
+- ``write_coverage_raster``: ``coverage.png``, the raster as received, and its world file
+  ``coverage.pgw`` (the raster's UTM placement, which the PNG cannot carry).
 """
 
 from __future__ import annotations
@@ -29,10 +34,19 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from PIL import Image
 
 from mapping.mosaic import TileGrid, assemble
 from seamap.results import write_geotiff, write_png
-from seamap.zenoh_io import TileInfo, TileKeyParts, decode_tile
+from seamap.zenoh_io import (
+    CoverageInfo,
+    CoverageKeyParts,
+    TileInfo,
+    TileKeyParts,
+    decode_tile,
+    json_bytes,
+    parse_coverage_summary,
+)
 
 TRACK_HEADER = ("time", "lat", "lon", "east", "north", "heading_deg")
 
@@ -81,12 +95,29 @@ class Mosaic:
 
 
 @dataclass
+class HeldCoverage:
+    """A survey's latest coverage as published by its boat, each part at its newest
+    version: the summary (``parse_coverage_summary``; areas in m², gaps as WGS84 GeoJSON)
+    and the raster (PNG as received, one pixel a cell, north-up, placed by ``raster_info``
+    on the survey's UTM grid)."""
+
+    summary: dict[str, Any] | None = None
+    summary_changed: bool = False
+    """Taken since ``coverage.json`` and ``gaps.geojson`` were last written."""
+    raster: bytes = b""
+    raster_info: CoverageInfo | None = None
+    raster_changed: bool = False
+    """Taken since ``coverage.png`` was last written."""
+
+
+@dataclass
 class HeldSurvey:
     tiles: dict[tuple[int, int], HeldTile] = field(default_factory=dict)
     """By (col, row)."""
     changed: bool = False
     """Tiles taken since the mosaic was last written."""
     too_big_told: bool = False
+    coverage: HeldCoverage = field(default_factory=HeldCoverage)
 
     def mosaic_px(self) -> int:
         """Pixels of the mosaic (0 without tiles), before assembling it: like the mosaic,
@@ -122,7 +153,7 @@ class HeldVehicle:
     status_changed: bool = False
     surveys: dict[str, HeldSurvey] = field(default_factory=dict)
     latest_survey: str | None = None
-    """The survey of the latest tile taken."""
+    """The survey of the latest tile taken (before any tile: of the first coverage)."""
 
 
 class ShoreState:
@@ -204,6 +235,63 @@ class ShoreState:
         vehicle.latest_survey = where.survey
         return True
 
+    def take_coverage_summary(self, where: CoverageKeyParts, payload: bytes) -> bool:
+        """Hold a coverage summary (JSON, ``parse_coverage_summary``) published at ``where``;
+        True when taken, False when its ``version`` is not newer than the one held."""
+        survey = self._coverage_survey(where)
+        try:
+            summary = parse_coverage_summary(payload)
+        except ValueError as exc:
+            raise BadPayload(str(exc)) from None
+        problem = _summary_problem(summary, where.survey)
+        if problem:
+            raise BadPayload(f"coverage summary: {problem}")
+        held = survey.coverage.summary if survey is not None else None
+        if held is not None and summary["version"] <= held["version"]:
+            return False
+        coverage = self._hold_survey(where).coverage
+        coverage.summary, coverage.summary_changed = summary, True
+        return True
+
+    def take_coverage_raster(
+        self, where: CoverageKeyParts, payload: bytes, attachment: bytes | None
+    ) -> bool:
+        """Hold a coverage raster (PNG, with its ``CoverageInfo`` as attachment) published
+        at ``where``; True when taken, False when not newer than the one held."""
+        survey = self._coverage_survey(where)
+        if attachment is None:
+            raise BadPayload("coverage raster without attachment")
+        try:
+            info = CoverageInfo.from_json(attachment)
+        except ValueError as exc:
+            raise BadPayload(str(exc)) from None
+        held = survey.coverage.raster_info if survey is not None else None
+        if held is not None and info.version <= held.version:
+            return False
+        size = _png_size(payload)
+        if size != (info.cols, info.rows):
+            raise BadPayload(
+                f"coverage raster is {size[0]} x {size[1]} px, attachment says "
+                f"{info.cols} x {info.rows} cells"
+            )
+        coverage = self._hold_survey(where).coverage
+        coverage.raster, coverage.raster_info, coverage.raster_changed = payload, info, True
+        return True
+
+    def _coverage_survey(self, where: CoverageKeyParts) -> HeldSurvey | None:
+        """The survey held for a coverage key (None if not held yet); BadPayload for ids
+        that cannot name folders."""
+        if id_problem(where.vehicle) or id_problem(where.survey):
+            raise BadPayload("vehicle or survey id unusable as a folder name")
+        vehicle = self.vehicles.get(where.vehicle)
+        return vehicle.surveys.get(where.survey) if vehicle is not None else None
+
+    def _hold_survey(self, where: CoverageKeyParts) -> HeldSurvey:
+        vehicle = self.vehicle(where.vehicle)
+        if vehicle.latest_survey is None:
+            vehicle.latest_survey = where.survey
+        return vehicle.surveys.setdefault(where.survey, HeldSurvey())
+
     # --- reading what it holds ----------------------------------------------------------------
 
     def tiles(self, vehicle: str, survey: str) -> dict[tuple[int, int], HeldTile]:
@@ -220,6 +308,14 @@ class ShoreState:
             return None
         return held.surveys[survey].mosaic()
 
+    def coverage(self, vehicle: str, survey: str) -> HeldCoverage | None:
+        """The survey's latest coverage (None when neither its summary nor raster came)."""
+        held = self.vehicles.get(vehicle)
+        coverage = held.surveys[survey].coverage if held and survey in held.surveys else None
+        if coverage is None or (coverage.summary is None and coverage.raster_info is None):
+            return None
+        return coverage
+
     def track(self, vehicle: str) -> list[TrackPoint]:
         held = self.vehicles.get(vehicle)
         return list(held.track) if held is not None else []
@@ -232,6 +328,41 @@ class ShoreState:
         """Whether the vehicle's liveliness token is up (None: never seen)."""
         held = self.vehicles.get(vehicle)
         return held.alive if held is not None else None
+
+
+def _summary_problem(summary: dict[str, Any], survey: str) -> str | None:
+    """What ``parse_coverage_summary`` leaves unchecked that the shore relies on: the
+    survey it names, an integer version, a boolean ``final``, areas (m²) as numbers, and
+    nothing that strict JSON cannot hold (the files and the page are strict JSON)."""
+    if summary["survey"] != survey:
+        return f"names survey {summary['survey']!r}, published under {survey!r}"
+    version = summary["version"]
+    if not isinstance(version, int) or isinstance(version, bool):
+        return "version is not an integer"
+    if not isinstance(summary["final"], bool):
+        return "final is not true or false"
+    for key in ("seen_m2", "covered_m2"):
+        value = summary[key]
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            return f"{key} is not a number"
+    try:
+        json_bytes(summary)
+    except (ValueError, TypeError):
+        return "holds NaN or Infinity"
+    return None
+
+
+def _png_size(payload: bytes) -> tuple[int, int]:
+    """The (width, height) of a PNG, decoded whole so a truncated one is refused;
+    BadPayload if it is not a PNG."""
+    try:
+        with Image.open(io.BytesIO(payload)) as image:
+            if image.format != "PNG":
+                raise ValueError(f"a {image.format} image")
+            image.load()
+            return image.size
+    except Exception as exc:  # PIL raises many kinds (and DecompressionBombError)
+        raise BadPayload(f"coverage raster is not a PNG ({exc})") from None
 
 
 # --- the files ----------------------------------------------------------------------------
@@ -297,9 +428,36 @@ def write_status(folder: Path, status_raw: bytes) -> None:
     atomic_write(folder / "status.json", status_raw)
 
 
+def write_coverage_summary(folder: Path, summary: dict[str, Any]) -> None:
+    """``folder/coverage.json``: the summary without its gaps; ``folder/gaps.geojson``:
+    its gaps (a FeatureCollection of WGS84 [lon, lat] polygons, RFC 7946) when the
+    survey's area is known. Without an area there are no gaps to tell (an empty
+    collection would read as "nothing missed"): a ``gaps.geojson`` written before goes."""
+    rest = {key: value for key, value in summary.items() if key != "gaps"}
+    atomic_write(folder / "coverage.json", json.dumps(rest, indent=2).encode() + b"\n")
+    gaps = folder / "gaps.geojson"
+    if summary["area"] is not None:
+        atomic_write(gaps, json.dumps(summary["gaps"]).encode() + b"\n")
+    else:
+        gaps.unlink(missing_ok=True)
+
+
+def write_coverage_raster(folder: Path, png: bytes, info: CoverageInfo) -> None:
+    """``folder/coverage.png``: the coverage raster as received (RGBA, one pixel a cell,
+    north-up), and ``folder/coverage.pgw``, its world file (ESRI: cell width, two zero
+    rotations, minus the cell height, the UTM easting and northing of the top-left cell's
+    centre, metres; the CRS is ``coverage.json``'s ``epsg``). The world file goes first:
+    a reader that sees the new PNG finds where it lies."""
+    half = info.cell_m / 2
+    lines = [info.cell_m, 0.0, 0.0, -info.cell_m, info.west + half, info.north - half]
+    atomic_write(folder / "coverage.pgw", "".join(f"{v:.4f}\n" for v in lines).encode())
+    atomic_write(folder / "coverage.png", png)
+
+
 __all__ = [
     "TRACK_HEADER",
     "BadPayload",
+    "HeldCoverage",
     "HeldSurvey",
     "HeldTile",
     "HeldVehicle",
@@ -308,6 +466,8 @@ __all__ = [
     "TrackPoint",
     "atomic_write",
     "id_problem",
+    "write_coverage_raster",
+    "write_coverage_summary",
     "write_mosaic",
     "write_status",
     "write_track",

@@ -1,14 +1,17 @@
 """The shore station: follow boats' live maps over zenoh and keep them on disk.
 
-``ShoreStation`` subscribes to a vehicle's pose, status and tiles (CONTRACT.md "Zenoh")
-and to its liveliness token, and catches up with a ``get`` of every current tile at start
-and each time the boat's token (re)appears. zenoh callbacks only turn what arrives into
-``_Received`` items on one queue (``_hand_over``, the single bridge from zenoh's threads);
-``run`` takes them off on the caller's thread, applies them to what it holds
-(``seamap.shore.state``) and, at a steady cadence, shows a status line and rewrites
-(atomically, only what changed):
+``ShoreStation`` subscribes to a vehicle's pose, status, tiles and coverage (CONTRACT.md
+"Zenoh") and to its liveliness token, and catches up with a ``get`` of every current tile
+and of the latest coverage at start and each time the boat's token (re)appears. zenoh
+callbacks only turn what arrives into ``_Received`` items on one queue (``_hand_over``, the
+single bridge from zenoh's threads); ``run`` takes them off on the caller's thread, applies
+them to what it holds (``seamap.shore.state``) and, at a steady cadence, shows a status
+line and rewrites (atomically, only what changed):
 
 - ``DIR/{vehicle}/{survey}/mosaic.tif`` and ``mosaic.png``: the survey's tiles held;
+- ``DIR/{vehicle}/{survey}/coverage.png`` (and its world file ``coverage.pgw``),
+  ``coverage.json`` and ``gaps.geojson``: the survey's latest coverage raster and summary
+  (``state.write_coverage_*``);
 - ``DIR/{vehicle}/track.csv`` and ``track.geojson``: the vehicle's track;
 - ``DIR/{vehicle}/status.json``: its latest status.
 
@@ -41,6 +44,7 @@ from seamap.config import SiteConfig, ZenohConfig
 from seamap.errors import SeamapError
 from seamap.shore.state import (
     BadPayload,
+    HeldCoverage,
     HeldSurvey,
     HeldTile,
     HeldVehicle,
@@ -48,16 +52,22 @@ from seamap.shore.state import (
     ShoreState,
     TrackPoint,
     id_problem,
+    write_coverage_raster,
+    write_coverage_summary,
     write_mosaic,
     write_status,
     write_track,
 )
 from seamap.zenoh_io import (
     ROOT,
+    CoverageInfo,
+    CoverageKeyParts,
     TileInfo,
     alive_key,
+    coverage_selector,
     open_session,
     parse_alive_key,
+    parse_coverage_key,
     parse_tile_key,
     pose_key,
     status_key,
@@ -129,7 +139,9 @@ class ShoreEvent:
 
     ``kind`` is "tile" (``survey``, ``col``, ``row``, ``info`` and the PNG as received in
     ``payload``), "pose" (``point``, and the pose JSON as received in ``payload``), "status"
-    (``status``) or "alive" (``alive``: the liveliness token appeared or went)."""
+    (``status``), "alive" (``alive``: the liveliness token appeared or went), "coverage"
+    (``survey`` and its newer ``summary``) or "coverage_raster" (``survey``,
+    ``coverage_info`` and the PNG as received in ``payload``)."""
 
     kind: str
     vehicle: str
@@ -141,6 +153,8 @@ class ShoreEvent:
     point: TrackPoint | None = None
     status: dict[str, Any] | None = None
     alive: bool | None = None
+    summary: dict[str, Any] | None = None
+    coverage_info: CoverageInfo | None = None
 
 
 @dataclass
@@ -151,6 +165,10 @@ class ShoreStats:
     """Tiles not newer than the one held (late catch-up replies, repeats): dropped."""
     poses: int = 0
     statuses: int = 0
+    coverage_taken: int = 0
+    """Coverage summaries and rasters stored, new or replacing an older version."""
+    coverage_stale: int = 0
+    """Coverage summaries and rasters not newer than the one held: dropped."""
     bad: int = 0
     """Payloads that could not be used (bad PNG, attachment, JSON, size, key)."""
     arrivals: int = 0
@@ -158,6 +176,7 @@ class ShoreStats:
     departures: int = 0
     catchups_started: int = 0
     catchups_done: int = 0
+    """Catch-ups whose every ``get`` (tiles, coverage) has ended."""
     writes: int = 0
     """Files written."""
     listener_errors: int = 0
@@ -229,9 +248,9 @@ class ShoreStation:
 
     ``open`` (or ``with``) opens the session (blocking ~0.5 s), subscribes and catches up;
     ``run`` applies what arrives and writes the files until stopped; ``close`` ends the
-    session. The readers (``tiles``, ``mosaic``, ``track``, ``status``, ``alive``,
-    ``status_line``, ``stats``) belong to the thread that calls ``run``: use them between
-    runs or from its ``until`` predicate. Only ``stop`` may be called from elsewhere.
+    session. The readers (``tiles``, ``mosaic``, ``coverage``, ``track``, ``status``,
+    ``alive``, ``status_line``, ``stats``) belong to the thread that calls ``run``: use them
+    between runs or from its ``until`` predicate. Only ``stop`` may be called from elsewhere.
     """
 
     def __init__(
@@ -259,6 +278,9 @@ class ShoreStation:
         self._bad_told: dict[str, tuple[float, int]] = {}
         """Per kind of payload: when its last bad-payload line was told, how many since."""
         self._write_failing: set[Path] = set()
+        self._catchups = 0
+        self._catchup_gets: dict[int, int] = {}
+        """Per catch-up (by number): its ``get``s not ended yet."""
 
     # --- life cycle -------------------------------------------------------------------------
 
@@ -293,6 +315,7 @@ class ShoreStation:
             session.declare_subscriber(pose_key(vehicle), self._on_sample)
             session.declare_subscriber(status_key(vehicle), self._on_sample)
             session.declare_subscriber(tiles_selector(vehicle, survey), self._on_sample)
+            session.declare_subscriber(coverage_selector(vehicle, survey), self._on_sample)
             session.liveliness().declare_subscriber(
                 alive_key(vehicle), self._on_liveliness, history=True
             )
@@ -371,23 +394,33 @@ class ShoreStation:
                 self._apply(item)
 
     def catch_up(self, vehicle: str | None = None) -> None:
-        """Ask for every current tile of ``vehicle`` (default: the vehicles followed) of
-        the survey(s) followed; the replies arrive like live tiles."""
+        """Ask for every current tile and the latest coverage of ``vehicle`` (default: the
+        vehicles followed) of the survey(s) followed; the replies arrive like live ones.
+        The catch-up is done when both ``get``s have ended."""
         if self._session is None:
             raise RuntimeError("catch_up before open")
-        selector = tiles_selector(vehicle or self.settings.vehicle, self.settings.survey)
-        try:
-            self._session.get(
-                selector,
-                zenoh.handlers.Callback(self._on_reply, self._on_catchup_done),
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=self.settings.catchup_timeout_s,
-            )
-        except zenoh.ZError as exc:
-            self._console.event(f"cannot catch up with {selector} ({exc})")
-            return
-        self.stats.catchups_started += 1
+        self._catchups += 1
+        number, asked = self._catchups, 0
+        done = partial(self._on_catchup_done, number)
+        for selector in (
+            tiles_selector(vehicle or self.settings.vehicle, self.settings.survey),
+            coverage_selector(vehicle or self.settings.vehicle, self.settings.survey),
+        ):
+            try:
+                self._session.get(
+                    selector,
+                    zenoh.handlers.Callback(self._on_reply, done),
+                    target=zenoh.QueryTarget.ALL,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=self.settings.catchup_timeout_s,
+                )
+            except zenoh.ZError as exc:
+                self._console.event(f"cannot catch up with {selector} ({exc})")
+                continue
+            asked += 1
+        if asked:
+            self._catchup_gets[number] = asked
+            self.stats.catchups_started += 1
 
     # --- the one bridge from zenoh's threads --------------------------------------------------
 
@@ -406,8 +439,8 @@ class ShoreStation:
         if sample is not None:  # an error reply carries no tile
             self._hand_over(_received(_Via.CATCHUP, sample))
 
-    def _on_catchup_done(self) -> None:
-        self._hand_over(_Received(_Via.CATCHUP_DONE))
+    def _on_catchup_done(self, number: int) -> None:
+        self._hand_over(_Received(_Via.CATCHUP_DONE, key=str(number)))
 
     # --- applying what arrived (the run thread) -----------------------------------------------
 
@@ -415,7 +448,7 @@ class ShoreStation:
         if item.via is _Via.WAKE:
             return
         if item.via is _Via.CATCHUP_DONE:
-            self.stats.catchups_done += 1
+            self._catchup_get_done(int(item.key))
             return
         if item.via is _Via.LIVELINESS:
             vehicle = parse_alive_key(item.key)
@@ -426,10 +459,22 @@ class ShoreStation:
         try:
             if len(parts) == 3 and parts[0] == ROOT and parts[2] in ("pose", "status"):
                 self._take_pose_or_status(parts[1], parts[2], item)
+            elif (coverage := parse_coverage_key(item.key)) is not None:
+                self._take_coverage(coverage, item)
             else:
                 self._take_tile(item)
         except BadPayload as exc:
             self._bad(item.key, str(exc))
+
+    def _catchup_get_done(self, number: int) -> None:
+        left = self._catchup_gets.get(number)
+        if left is None:
+            return
+        if left > 1:
+            self._catchup_gets[number] = left - 1
+        else:
+            del self._catchup_gets[number]
+            self.stats.catchups_done += 1
 
     def _tell(self, event: ShoreEvent) -> None:
         if self._on_event is None:
@@ -485,11 +530,39 @@ class ShoreStation:
         else:
             self.stats.tiles_stale += 1
 
+    def _take_coverage(self, where: CoverageKeyParts, item: _Received) -> None:
+        if not item.put:
+            return  # the contract has no coverage deletes; keep what we hold
+        if where.raster:
+            taken = self._state.take_coverage_raster(where, item.payload, item.attachment)
+        else:
+            taken = self._state.take_coverage_summary(where, item.payload)
+        if not taken:
+            self.stats.coverage_stale += 1
+            return
+        self.stats.coverage_taken += 1
+        coverage = self._state.vehicles[where.vehicle].surveys[where.survey].coverage
+        if where.raster:
+            event = ShoreEvent(
+                "coverage_raster", where.vehicle, where.survey,
+                coverage_info=coverage.raster_info, payload=item.payload,
+            )  # fmt: skip
+        else:
+            event = ShoreEvent("coverage", where.vehicle, where.survey, summary=coverage.summary)
+        self._tell(event)
+
     def _bad(self, key: str, reason: str) -> None:
         """Count a bad payload; tell it in one line, at most one line a second per kind
-        (pose, status, tile), so a flood of one kind hides neither itself nor the others."""
+        (pose, status, tile, coverage summary, coverage raster), so a flood of one kind
+        hides neither itself nor the others."""
         self.stats.bad += 1
-        kind = key.rsplit("/", 1)[-1] if key.endswith(("/pose", "/status")) else "tile"
+        coverage = parse_coverage_key(key)
+        if key.endswith(("/pose", "/status")):
+            kind = key.rsplit("/", 1)[-1]
+        elif coverage is not None:
+            kind = "coverage raster" if coverage.raster else "coverage"
+        else:
+            kind = "tile"
         now = self._clock()
         told_at, untold = self._bad_told.get(kind, (-math.inf, 0))
         if now - told_at < BAD_LINE_INTERVAL_S:
@@ -524,6 +597,15 @@ class ShoreStation:
             for survey_id, survey in held.surveys.items():
                 if survey.changed:
                     survey.changed = not self._write_mosaic(vehicle, survey_id, survey)
+                self._write_coverage(folder / survey_id, survey.coverage)
+
+    def _write_coverage(self, folder: Path, coverage: HeldCoverage) -> None:
+        if coverage.summary_changed and coverage.summary is not None:
+            summary = partial(write_coverage_summary, folder, coverage.summary)
+            coverage.summary_changed = not self._attempt(folder / "coverage.json", summary)
+        if coverage.raster_changed and coverage.raster_info is not None:
+            raster = partial(write_coverage_raster, folder, coverage.raster, coverage.raster_info)
+            coverage.raster_changed = not self._attempt(folder / "coverage.png", raster)
 
     def _write_mosaic(self, vehicle: str, survey_id: str, survey: HeldSurvey) -> bool:
         folder = self.settings.out_dir / vehicle / survey_id
@@ -570,6 +652,10 @@ class ShoreStation:
         """The survey's tiles as one image spanning those with data (None without tiles)."""
         return self._state.mosaic(vehicle, survey)
 
+    def coverage(self, vehicle: str, survey: str) -> HeldCoverage | None:
+        """The survey's latest coverage summary and raster (None when neither came)."""
+        return self._state.coverage(vehicle, survey)
+
     def track(self, vehicle: str) -> list[TrackPoint]:
         return self._state.track(vehicle)
 
@@ -581,8 +667,8 @@ class ShoreStation:
         return self._state.alive(vehicle)
 
     def status_line(self) -> str:
-        """One line: per vehicle its survey, pose, frames mapped, lag, links, tiles held,
-        and "boat away" when its liveliness token is gone."""
+        """One line: per vehicle its survey, tiles held, coverage, pose, frames mapped, lag,
+        links, and "boat away" when its liveliness token is gone."""
         if not self._state.vehicles:
             cfg = self.settings.zenoh
             where = ", ".join(cfg.connect) or "no endpoint"
@@ -606,6 +692,9 @@ def _vehicle_line(vehicle: str, held: HeldVehicle) -> str:
     held_survey = held.surveys.get(survey) if survey else None
     parts.append(f"survey {survey or '-'}")
     parts.append(f"tiles {len(held_survey.tiles) if held_survey else 0}")
+    summary = held_survey.coverage.summary if held_survey else None
+    if summary is not None:
+        parts.append(_coverage_fragment(summary))
     if held.track:
         p = held.track[-1]
         parts.append(f"{p.lat:.6f} {p.lon:.6f} hdg {p.heading_deg:.0f}")
@@ -626,6 +715,17 @@ def _vehicle_line(vehicle: str, held: HeldVehicle) -> str:
             )
         )
     return " | ".join(parts)
+
+
+def _coverage_fragment(summary: dict[str, Any]) -> str:
+    """``covered 63.4 %`` of the survey's area, or ``seen 812 m²`` when the area is not
+    known; `` (final)`` once the survey-end pass has made it final."""
+    area = summary["area"]
+    if area is not None:
+        text = f"covered {100 * area['fraction']:.1f} %"
+    else:
+        text = f"seen {summary['seen_m2']:.0f} m²"
+    return text + (" (final)" if summary["final"] else "")
 
 
 def serve(
@@ -669,6 +769,7 @@ def serve(
 
 __all__ = [
     "DEFAULT_CONNECT",
+    "HeldCoverage",
     "HeldTile",
     "Mosaic",
     "ShoreEvent",

@@ -1,5 +1,6 @@
 """A shore station with its live map page, fed by fake boats that speak the contract over
-real zenoh sessions on 127.0.0.1 (peer mode, no multicast scouting, free ports)."""
+real zenoh sessions on 127.0.0.1 (peer mode, no multicast scouting, free ports), and a
+survey's coverage as a boat publishes it."""
 
 from __future__ import annotations
 
@@ -13,14 +14,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import pytest
 import zenoh
+from PIL import Image
+from pyproj import Transformer
 
+from seamap.results import COVERAGE_COLOURS
 from seamap.shore.station import ShoreSettings, ShoreStation
 from seamap.shore.web import WebServer
 from seamap.zenoh_io import (
+    CoverageInfo,
     TileInfo,
     alive_key,
+    coverage_key,
+    coverage_raster_key,
+    coverage_selector,
     encode_tile,
     json_bytes,
     open_session,
@@ -64,9 +74,118 @@ STATUS = {
 }
 
 
+# --- a survey's coverage, as the boat publishes it ---------------------------------------
+
+CELL_M = 0.25
+COVERAGE_WEST, COVERAGE_NORTH = 500_000.0, 4_800_010.0
+"""The raster's top-left corner (UTM 31N metres): north of the test tiles, not on them."""
+COVERAGE_COLS, COVERAGE_ROWS = 40, 24  # 10 m x 6 m
+RGB = {name: tuple(reversed(bgr)) for name, bgr in COVERAGE_COLOURS.items()}
+"""The raster's colours (``seamap.results`` keeps them as BGR for OpenCV)."""
+
+
+def coverage_cells(order: tuple[str, str, str] = ("below_bar", "at_bar", "above_bar")):
+    """RGBA, north-up: the 4 northern rows never seen (transparent), then columns 0-9,
+    10-19 and 20-29 in the colours of ``order``, columns 30-39 never seen."""
+    rgba = np.zeros((COVERAGE_ROWS, COVERAGE_COLS, 4), np.uint8)
+    for k, name in enumerate(order):
+        rgba[4:, 10 * k : 10 * (k + 1)] = (*RGB[name], 255)
+    return rgba
+
+
+def cell_centre(row: int, col: int) -> tuple[float, float]:
+    """The UTM (east, north) of a raster cell's centre."""
+    return COVERAGE_WEST + (col + 0.5) * CELL_M, COVERAGE_NORTH - (row + 0.5) * CELL_M
+
+
+def coverage_png(rgba: npt.NDArray[np.uint8]) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(rgba, mode="RGBA").save(out, format="PNG")
+    return out.getvalue()
+
+
+def coverage_info(version: int, cols: int = COVERAGE_COLS) -> CoverageInfo:
+    return CoverageInfo(EPSG, CELL_M, COVERAGE_WEST, COVERAGE_NORTH, cols, COVERAGE_ROWS, version)
+
+
+GAP_OUTER = [(500_007.5, 4_800_004.5), (500_009.5, 4_800_004.5), (500_009.5, 4_800_008.5),
+             (500_007.5, 4_800_008.5)]  # fmt: skip
+"""The first gap (UTM metres, counterclockwise), in the raster's unseen columns..."""
+GAP_HOLE = [(500_008.25, 4_800_006.25), (500_008.25, 4_800_006.75), (500_008.75, 4_800_006.75),
+            (500_008.75, 4_800_006.25)]  # fmt: skip
+"""...with a hole (clockwise)."""
+GAP_TWO = [(500_012.0, 4_800_004.0), (500_014.0, 4_800_004.0), (500_013.0, 4_800_006.0)]
+
+
+def lonlat_ring(ring: list[tuple[float, float]]) -> list[list[float]]:
+    """A closed GeoJSON ring ([lon, lat], 1e-9 degrees) of UTM 31N points."""
+    to_wgs84 = Transformer.from_crs(EPSG, 4326, always_xy=True)
+    return [[round(c, 9) for c in to_wgs84.transform(e, n)] for e, n in [*ring, ring[0]]]
+
+
+def coverage_summary(version: int, *, area: bool = True, final: bool = False) -> dict[str, Any]:
+    """A summary as the boat publishes it: 63.4 % of 1,200 m² covered, 2 gaps (420 m²)
+    when ``area``; else only what was seen (812 m²)."""
+    features = [
+        {"type": "Feature", "id": k, "properties": {"id": k, "area_m2": m2},
+         "geometry": {"type": "Polygon", "coordinates": rings}}
+        for k, m2, rings in (
+            (1, 400.0, [lonlat_ring(GAP_OUTER), lonlat_ring(GAP_HOLE)]),
+            (2, 20.1, [lonlat_ring(GAP_TWO)]),
+        )
+    ]  # fmt: skip
+    return {
+        "survey": "s1", "time": version / 1000, "final": final, "version": version,
+        "epsg": EPSG, "cell_m": CELL_M, "min_passes": 1, "seen_m2": 812.5, "covered_m2": 812.5,
+        "area": {"area_m2": 1200.0, "covered_m2": 760.25, "fraction": 0.63354, "gaps": 2,
+                 "gaps_m2": 420.1, "min_gap_m2": 1.0} if area else None,
+        "gaps": {"type": "FeatureCollection", "features": features if area else []},
+    }  # fmt: skip
+
+
+class CoverageSource:
+    """A boat's coverage of one survey on its zenoh session: the summary and raster
+    publishers, and a complete queryable answering ``coverage_selector`` with the latest
+    of each (declare it before the boat's liveliness token, as the boat would)."""
+
+    def __init__(self, session: zenoh.Session, vehicle: str, survey: str = "s1") -> None:
+        self.summary_key = coverage_key(vehicle, survey)
+        self.raster_key = coverage_raster_key(vehicle, survey)
+        self.summary_pub = session.declare_publisher(self.summary_key)
+        self.raster_pub = session.declare_publisher(self.raster_key)
+        self.latest: dict[str, tuple[bytes, bytes | None]] = {}
+        self.queryable = session.declare_queryable(
+            coverage_selector(vehicle), self._serve, complete=True
+        )
+
+    def _serve(self, query: zenoh.Query) -> None:
+        for key, (payload, attachment) in list(self.latest.items()):
+            if query.key_expr.intersects(key):
+                query.reply(key, payload, attachment=attachment)
+
+    def wait_heard(self) -> None:
+        """Until the shore's coverage subscription has reached this boat."""
+        wait_until(
+            lambda: all(bool(p.matching_status.matching)  # type: ignore[attr-defined]
+                        for p in (self.summary_pub, self.raster_pub)),
+            "the shore's coverage subscriber",
+        )  # fmt: skip
+
+    def put_summary(self, summary: dict[str, Any] | bytes) -> None:
+        payload = summary if isinstance(summary, bytes) else json_bytes(summary)
+        self.latest[self.summary_key] = (payload, None)
+        self.summary_pub.put(payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def put_raster(self, png: bytes, attachment: CoverageInfo | bytes | None) -> None:
+        raw = attachment.to_json() if isinstance(attachment, CoverageInfo) else attachment
+        self.latest[self.raster_key] = (png, raw)
+        self.raster_pub.put(png, encoding=zenoh.Encoding.IMAGE_PNG, attachment=raw)
+
+
 class Boat:
     """A boat after the contract, in plain zenoh, connecting to the shore's port: a
-    liveliness token, tiles, poses, status and a queryable serving its current tiles."""
+    liveliness token, tiles, poses, status, a queryable serving its current tiles, and
+    the coverage of survey s1 (``coverage``)."""
 
     def __init__(self, vehicle: str, shore_port: int) -> None:
         self.vehicle = vehicle
@@ -76,6 +195,7 @@ class Boat:
         self.queryable = self.session.declare_queryable(
             tiles_selector(vehicle), self._serve, complete=True
         )
+        self.coverage = CoverageSource(self.session, vehicle)
         self.token = self.session.liveliness().declare_token(alive_key(vehicle))
 
     def _serve(self, query: zenoh.Query) -> None:
