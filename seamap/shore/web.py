@@ -3,16 +3,20 @@ thread and event loop, fed by the station's ``on_event`` hook.
 
 The station's run thread hands each item it applied over with ``call_soon_threadsafe``
 and never waits; the loop keeps its own view of every vehicle (``WebView``: the latest PNG
-and ``TileInfo`` of each tile, the track, pose, status and liveliness) and pushes each
-change to the open pages as server-sent events. Routes:
+and ``TileInfo`` of each tile, the latest coverage summary and raster of each survey, the
+track, pose, status and liveliness) and pushes each change to the open pages as
+server-sent events. Routes:
 
 - ``/`` and ``/static/...``: the page (``seamap/shore/static``, plain JavaScript; nothing
   is fetched from elsewhere);
 - ``/api/state``: the view as JSON (``WebView.snapshot``);
 - ``/api/tile/{vehicle}/{survey}/{col}/{row}.png?v=VERSION``: a tile's PNG as received;
+- ``/api/coverage/{vehicle}/{survey}.png?v=VERSION``: a survey's coverage raster (PNG as
+  received; RGBA, one pixel a cell, north-up);
 - ``/api/events``: server-sent events. The stream opens with a ``state`` event (the
-  snapshot) and goes on with ``tile``, ``pose``, ``status`` and ``alive`` events. Each
-  page has a bounded queue: one that falls behind loses what is queued and gets a fresh
+  snapshot) and goes on with ``tile``, ``pose``, ``status``, ``alive`` and ``coverage``
+  (a survey's summary and raster info, sent when either comes newer) events. Each page
+  has a bounded queue: one that falls behind loses what is queued and gets a fresh
   ``state`` instead, and one that takes no data for ``WRITE_TIMEOUT_S`` is dropped;
 - ``/files/{vehicle}/track.geojson``, ``/files/{vehicle}/{survey}/mosaic.tif``: the
   files the station keeps under its output folder (rewritten every few seconds).
@@ -34,7 +38,7 @@ from aiohttp import web
 from seamap.errors import SeamapError
 from seamap.shore.state import id_problem
 from seamap.shore.station import ShoreEvent
-from seamap.zenoh_io import TileInfo
+from seamap.zenoh_io import CoverageInfo, TileInfo
 
 STATIC_DIR = Path(__file__).with_name("static")
 CLIENT_QUEUE = 256
@@ -90,6 +94,34 @@ def _tile_json(survey: str, col: int, row: int, info: TileInfo) -> dict[str, Any
     }
 
 
+def _raster_json(info: CoverageInfo) -> dict[str, Any]:
+    return {
+        "version": info.version,
+        "epsg": info.epsg,
+        "cell_m": info.cell_m,
+        "west": info.west,
+        "north": info.north,
+        "cols": info.cols,
+        "rows": info.rows,
+    }
+
+
+@dataclass
+class _Coverage:
+    summary: dict[str, Any] | None = None
+    info: CoverageInfo | None = None
+    png: bytes = b""
+
+    def to_json(self) -> dict[str, Any]:
+        raster = _raster_json(self.info) if self.info is not None else None
+        return {"summary": self.summary, "raster": raster}
+
+
+def _version(summary: dict[str, Any] | None) -> int | None:
+    version = summary.get("version") if summary is not None else None
+    return version if isinstance(version, int) and not isinstance(version, bool) else None
+
+
 @dataclass
 class _Vehicle:
     alive: bool | None = None
@@ -99,6 +131,8 @@ class _Vehicle:
     track_epsg: int | None = None
     tiles: dict[str, dict[tuple[int, int], tuple[TileInfo, bytes]]] = field(default_factory=dict)
     """By survey, by (col, row): the latest info and PNG."""
+    coverage: dict[str, _Coverage] = field(default_factory=dict)
+    """By survey: its latest summary and raster."""
 
 
 class WebView:
@@ -142,13 +176,44 @@ class WebView:
         elif event.kind == "alive" and event.alive is not None:
             held.alive = bool(event.alive)
             data["alive"] = held.alive
+        elif event.kind in ("coverage", "coverage_raster") and not id_problem(event.survey):
+            if not self._take_coverage(held, event):
+                return None
+            coverage = held.coverage[event.survey]
+            data.update({"survey": event.survey, **coverage.to_json()})
+            return {"event": "coverage", "data": data}
         else:
             return None
         return {"event": event.kind, "data": data}
 
+    def _take_coverage(self, held: _Vehicle, event: ShoreEvent) -> bool:
+        """Hold a coverage summary or raster if newer than the one held (the station
+        hands over only newer ones; the page relies on it, so it is checked again)."""
+        coverage = held.coverage.get(event.survey) or _Coverage()
+        if event.kind == "coverage":
+            version = _version(event.summary)
+            held_version = _version(coverage.summary)
+            if event.summary is None or version is None:
+                return False
+            if held_version is not None and version <= held_version:
+                return False
+            coverage.summary = _finite(event.summary)
+        else:
+            info = event.coverage_info
+            if info is None or not event.payload:
+                return False
+            if coverage.info is not None and info.version <= coverage.info.version:
+                return False
+            coverage.info, coverage.png = info, event.payload
+            self.epsg = self.epsg if self.epsg is not None else info.epsg
+        held.coverage[event.survey] = coverage
+        return True
+
     def snapshot(self) -> dict[str, Any]:
-        """Every vehicle: alive, status, pose, track ([east, north] in ``track_epsg``) and
-        surveys (their grid and tiles: col, row, version, west, north)."""
+        """Every vehicle: alive, status, pose, track ([east, north] in ``track_epsg``),
+        surveys (their grid and tiles: col, row, version, west, north) and coverage (by
+        survey: ``summary`` as the boat published it, ``raster`` its ``CoverageInfo`` with
+        the top-left corner in UTM metres; either None until it came)."""
         vehicles = {}
         for name, held in sorted(self.vehicles.items()):
             surveys = {}
@@ -170,12 +235,20 @@ class WebView:
                 "track": held.track,
                 "track_epsg": held.track_epsg,
                 "surveys": surveys,
+                "coverage": {s: c.to_json() for s, c in sorted(held.coverage.items())},
             }
         return {"epsg": self.epsg, "vehicles": vehicles}
 
     def tile(self, vehicle: str, survey: str, col: int, row: int) -> tuple[TileInfo, bytes] | None:
         held = self.vehicles.get(vehicle)
         return held.tiles.get(survey, {}).get((col, row)) if held is not None else None
+
+    def coverage_raster(self, vehicle: str, survey: str) -> tuple[CoverageInfo, bytes] | None:
+        held = self.vehicles.get(vehicle)
+        coverage = held.coverage.get(survey) if held is not None else None
+        if coverage is None or coverage.info is None:
+            return None
+        return coverage.info, coverage.png
 
 
 def _pose_epsg(payload: bytes) -> int | None:
@@ -185,6 +258,15 @@ def _pose_epsg(payload: bytes) -> int | None:
     except (ValueError, AttributeError):
         return None
     return epsg if isinstance(epsg, int) and 32601 <= epsg <= 32760 else None
+
+
+def _png_response(request: web.Request, png: bytes, version: int, header: str) -> web.Response:
+    """A PNG held at ``version``. The URL names the version (``?v=``): cache it for good
+    when it is the one held."""
+    fresh = request.query.get("v") == str(version)
+    cache = "public, max-age=31536000, immutable" if fresh else "no-cache"
+    headers = {"Cache-Control": cache, header: str(version)}
+    return web.Response(body=png, content_type="image/png", headers=headers)
 
 
 def _sse(kind: str, data: Any) -> bytes:
@@ -326,6 +408,7 @@ class WebServer:
         app.router.add_static("/static/", STATIC_DIR, append_version=False)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/api/tile/{vehicle}/{survey}/{col}/{row}.png", self._tile)
+        app.router.add_get("/api/coverage/{vehicle}/{survey}.png", self._coverage)
         app.router.add_get("/api/events", self._events)
         app.router.add_get("/files/{vehicle}/track.geojson", self._track_file)
         app.router.add_get("/files/{vehicle}/{survey}/mosaic.tif", self._mosaic_file)
@@ -375,11 +458,15 @@ class WebServer:
         if held is None:
             raise web.HTTPNotFound()
         info, png = held
-        # The URL names the version: cache it for good when it is the one held.
-        fresh = request.query.get("v") == str(info.version)
-        cache = "public, max-age=31536000, immutable" if fresh else "no-cache"
-        headers = {"Cache-Control": cache, "X-Tile-Version": str(info.version)}
-        return web.Response(body=png, content_type="image/png", headers=headers)
+        return _png_response(request, png, info.version, "X-Tile-Version")
+
+    async def _coverage(self, request: web.Request) -> web.Response:
+        match = request.match_info
+        held = self.view.coverage_raster(match["vehicle"], match["survey"])
+        if held is None:
+            raise web.HTTPNotFound()
+        info, png = held
+        return _png_response(request, png, info.version, "X-Coverage-Version")
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(

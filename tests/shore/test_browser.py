@@ -13,12 +13,28 @@ import pytest
 from pyproj import Proj, Transformer
 
 from tests.shore import chromium
-from tests.shore.conftest import STATUS, Shore, pose, wait_until
+from tests.shore.conftest import (
+    GAP_HOLE,
+    GAP_OUTER,
+    GAP_TWO,
+    RGB,
+    STATUS,
+    Shore,
+    cell_centre,
+    coverage_cells,
+    coverage_info,
+    coverage_png,
+    coverage_summary,
+    pose,
+    wait_until,
+)
 from tests.test_shore import COL0, EPSG, RES_M, ROW0, TILE_M, tile_values
 
 SCREENSHOT_ENV = "SEAMAP_SHORE_SCREENSHOT"
 """When set, the page's screenshot (boats, mosaics, panel) is saved to this path."""
 BOAT1_FILL = (0xFF, 0x8C, 0x1A)  # the page's first boat colour
+BACKGROUND = (0x0C, 0x1D, 0x2B)  # the map's, where nothing is drawn
+COVERAGE_OPACITY = 0.55  # the page's, for the coverage raster
 
 chromium.require()
 
@@ -239,3 +255,107 @@ def test_on_a_phone_the_map_fills_the_screen_and_the_panel_folds(make_shore, bro
         assert phone.locator("#panel").is_visible()
     finally:
         phone.close()
+
+
+def test_forward_transverse_mercator_matches_pyproj(make_shore, page):
+    shore: Shore = make_shore()
+    open_page(page, shore)
+    points = [
+        (43.35, 3.0, 31, False), (0.01, -123.0, 10, False), (63.1, 17.9, 33, False),
+        (74.8, 27.5, 35, False), (-9.0, 152.8, 56, True), (-81.0, -63.2, 20, True),
+        (59.0, 8.9, 32, False), (43.35, 6.2, 31, False),  # east of zone 31: a gap that crosses
+    ]  # fmt: skip
+    for lat, lon, zone, south in points:
+        epsg = (32700 if south else 32600) + zone
+        got = page.evaluate("([la, lo, z, s]) => seamap.utm.fromLatLon(la, lo, z, s)",
+                            [lat, lon, zone, south])  # fmt: skip
+        east, north = Transformer.from_crs(4326, epsg, always_xy=True).transform(lon, lat)
+        assert got["e"] == pytest.approx(east, abs=1e-4)  # 0.1 mm
+        assert got["n"] == pytest.approx(north, abs=1e-4)
+        back = page.evaluate("([e, n, z, s]) => seamap.utm.toLatLon(e, n, z, s)",
+                             [got["e"], got["n"], zone, south])  # fmt: skip
+        assert (back["lat"], back["lon"]) == pytest.approx((lat, lon), abs=1e-10)
+
+
+def blend(rgb: tuple[int, ...], alpha: float) -> list[float]:
+    """``rgb`` drawn at ``alpha`` over the map's background."""
+    return [alpha * c + (1 - alpha) * b for c, b in zip(rgb, BACKGROUND, strict=True)]
+
+
+def near(got: list[int], expected: list[float] | tuple[int, ...], tol: float = 3) -> bool:
+    return all(abs(g - e) <= tol for g, e in zip(got[:3], expected, strict=True))
+
+
+def test_coverage_raster_gaps_and_covered_fraction_are_shown(make_shore, page):
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.coverage.wait_heard()
+    boat.coverage.put_summary(coverage_summary(2000))
+    boat.coverage.put_raster(coverage_png(coverage_cells()), coverage_info(2000))
+    open_page(page, shore)
+    show(page, 500_007.0, 4_800_006.0, 20.0)  # 20 px per metre: a cell is 5 px
+    page.wait_for_function(
+        "() => { const d = seamap.coverageDrawn('boat1', 's1');"
+        " return d.raster >= 2000 && d.gaps >= 2000; }",
+        polling="raf",
+    )
+    row = page.locator('section[data-vehicle="boat1"] li[data-survey="s1"] .coverage')
+    assert row.inner_text() == "covered 63.4 % of 1,200 m² · 2 gaps (420 m²)"
+
+    def at(east: float, north: float) -> list[int]:
+        return pixel(page, *screen_of(page, east, north))
+
+    # The raster, north-up, each cell in its colour where its UTM corner and size put it:
+    # 0.1 m (2 px) either side of cell edges, and the unseen cells left clear.
+    cells = {(10, 5): "below_bar", (10, 15): "at_bar", (23, 25): "above_bar"}
+    for (r, c), name in cells.items():
+        assert near(at(*cell_centre(r, c)), blend(RGB[name], COVERAGE_OPACITY)), (r, c)
+    for r, c in ((2, 5), (23, 39), (2, 25)):
+        assert near(at(*cell_centre(r, c)), BACKGROUND), (r, c)
+    edge_e, edge_n = 500_002.5, 4_800_009.0  # between columns 9 and 10, rows 3 and 4
+    assert near(at(edge_e - 0.1, 4_800_006.0), blend(RGB["below_bar"], COVERAGE_OPACITY))
+    assert near(at(edge_e + 0.1, 4_800_006.0), blend(RGB["at_bar"], COVERAGE_OPACITY))
+    assert near(at(500_001.0, edge_n + 0.1), BACKGROUND)
+    assert near(at(500_001.0, edge_n - 0.1), blend(RGB["below_bar"], COVERAGE_OPACITY))
+
+    # The gaps (WGS84 polygons, one with a hole) filled lightly in red, where their UTM
+    # corners are; clear in the hole and outside; a red dashed outline on the edges.
+    def tinted(p: list[int]) -> bool:
+        return p[0] - BACKGROUND[0] > 25 and abs(p[1] - BACKGROUND[1]) < 20
+
+    west, south = GAP_OUTER[0]
+    east, north = GAP_OUTER[2]
+    for inside in ((west + 0.2, south + 0.2), (east - 0.2, north - 0.2), (500_013.0, 4_800_004.6)):
+        assert tinted(at(*inside)), inside
+    hole_e = (GAP_HOLE[0][0] + GAP_HOLE[2][0]) / 2
+    hole_n = (GAP_HOLE[0][1] + GAP_HOLE[2][1]) / 2
+    for outside in ((hole_e, hole_n), (east + 0.2, north - 1), (west + 1, north + 0.2),
+                    (GAP_TWO[2][0], GAP_TWO[2][1] + 0.3)):  # fmt: skip
+        assert near(at(*outside), BACKGROUND), outside
+    # West of the gap, the raster's last seen column, untinted.
+    assert near(at(west - 0.2, south + 1), blend(RGB["above_bar"], COVERAGE_OPACITY))
+    outline = [at(west, south + k * 0.05) for k in range(1, 80)]
+    red = [p for p in outline if p[0] > 180 and p[1] < 120]
+    assert 0.3 < len(red) / len(outline) < 0.9  # dashed: red and gaps along the edge
+
+    # The toggle hides both and shows them again.
+    orange_cell = cell_centre(10, 5)
+    page.locator("#show-coverage").click()
+    page.wait_for_timeout(100)  # a frame
+    assert near(at(*orange_cell), BACKGROUND) and near(at(west + 0.2, south + 0.2), BACKGROUND)
+    page.locator("#show-coverage").click()
+    page.wait_for_timeout(100)
+    assert near(at(*orange_cell), blend(RGB["below_bar"], COVERAGE_OPACITY))
+
+    # The final coverage replaces it: new colours, no area (no gaps), marked final.
+    boat.coverage.put_summary(coverage_summary(3000, area=False, final=True))
+    boat.coverage.put_raster(coverage_png(coverage_cells(("above_bar",) * 3)), coverage_info(3000))
+    page.wait_for_function(
+        "() => { const d = seamap.coverageDrawn('boat1', 's1');"
+        " return d.raster >= 3000 && d.gaps >= 3000; }",
+        polling="raf",
+    )
+    assert near(at(*orange_cell), blend(RGB["above_bar"], COVERAGE_OPACITY))
+    assert near(at(west + 0.2, south + 0.2), BACKGROUND)
+    wait_until(lambda: "final" in row.inner_text(), "the final coverage in the panel")
+    assert row.inner_text() == "seen 813 m² · final"

@@ -21,7 +21,17 @@ from seamap.errors import SeamapError
 from seamap.shore.station import ShoreEvent
 from seamap.shore.web import WebView, parse_web_address
 from tests.ports import free_tcp_port
-from tests.shore.conftest import STATUS, WAIT_S, Shore, pose, wait_until
+from tests.shore.conftest import (
+    STATUS,
+    WAIT_S,
+    Shore,
+    coverage_cells,
+    coverage_info,
+    coverage_png,
+    coverage_summary,
+    pose,
+    wait_until,
+)
 from tests.test_shore import COL0, ROW0, seamap_shore, tile_info, tile_values
 
 
@@ -220,6 +230,60 @@ def test_a_slow_page_neither_holds_the_intake_nor_grows_without_bound(make_shore
         reader.close()
 
 
+def test_the_page_api_holds_each_surveys_coverage_and_pushes_newer_ones(make_shore):
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.coverage.wait_heard()
+    summary, png = coverage_summary(2000), coverage_png(coverage_cells())
+    boat.coverage.put_summary(summary)
+    boat.coverage.put_raster(png, coverage_info(2000))
+
+    def held() -> dict[str, Any]:
+        held = shore.state()["vehicles"].get("boat1", {}).get("coverage", {}).get("s1", {})
+        return held if held.get("summary") and held.get("raster") else {}
+
+    wait_until(lambda: bool(held()), "the coverage in the page's state")
+    info = coverage_info(2000)
+    assert held() == {
+        "summary": summary,
+        "raster": {"version": 2000, "epsg": info.epsg, "cell_m": info.cell_m, "west": info.west,
+                   "north": info.north, "cols": info.cols, "rows": info.rows},
+    }  # fmt: skip
+    # The raster as the boat published it, byte for byte.
+    assert shore.get("/api/coverage/boat1/s1.png?v=2000") == png
+    with urllib.request.urlopen(shore.url + "api/coverage/boat1/s1.png?v=2000") as response:
+        assert response.headers["Content-Type"] == "image/png"
+        assert response.headers["X-Coverage-Version"] == "2000"
+        assert "immutable" in response.headers["Cache-Control"]
+    with pytest.raises(urllib.error.HTTPError) as missing:
+        shore.get("/api/coverage/boat1/s9.png")
+    assert missing.value.code == 404
+
+    # A newer summary and raster are pushed to an open page as `coverage` events; an older
+    # one (a late catch-up reply) is not.
+    reader = EventReader(shore.url)
+    try:
+        _, kind, first = reader.first(lambda k, d: True, "the stream's first event")
+        assert kind == "state" and first["vehicles"]["boat1"]["coverage"]["s1"] == held()
+        boat.coverage.put_summary(coverage_summary(1000))
+        final, final_png = coverage_summary(3000, final=True), coverage_png(coverage_cells()[::-1])
+        boat.coverage.put_summary(final)
+        _, _, data = reader.first(lambda k, d: k == "coverage", "a coverage event")
+        assert data["vehicle"] == "boat1" and data["survey"] == "s1"
+        assert data["summary"] == final and data["raster"]["version"] == 2000
+        boat.coverage.put_raster(final_png, coverage_info(3000))
+        _, _, data = reader.first(
+            lambda k, d: k == "coverage" and d["raster"]["version"] == 3000, "the newer raster"
+        )
+        assert data["summary"]["version"] == 3000
+        assert shore.get("/api/coverage/boat1/s1.png?v=3000") == final_png
+        with reader._lock:
+            versions = [d["summary"]["version"] for _, k, d in reader.events if k == "coverage"]
+        assert 1000 not in versions
+    finally:
+        reader.close()
+
+
 def test_bad_values_never_reach_the_page_as_bad_json(make_shore):
     shore: Shore = make_shore()
     boat = shore.boat("boat1")
@@ -250,6 +314,11 @@ def test_the_view_takes_anything_the_station_might_hand_it():
         ShoreEvent("alive", "boat1"),
         ShoreEvent("nonsense", "boat1"),
         ShoreEvent("pose", "", payload=b"{"),
+        ShoreEvent("coverage", "boat1", "s1", summary=None),
+        ShoreEvent("coverage", "boat1", "s1", summary={"version": "1"}),
+        ShoreEvent("coverage", "boat1", "a/b", summary={"version": 1}),
+        ShoreEvent("coverage_raster", "boat1", "s1", coverage_info=None, payload=b"png"),
+        ShoreEvent("coverage_raster", "boat1", "s1", coverage_info=coverage_info(1)),
     ]
     assert [view.apply(event) for event in odd] == [None] * len(odd)
     json.dumps(view.snapshot(), allow_nan=False)

@@ -1,15 +1,20 @@
-// The page: the station's view (/api/events: a `state` snapshot, then tile, pose, status
-// and alive events), drawn on the map, and a panel per boat.
+// The page: the station's view (/api/events: a `state` snapshot, then tile, pose, status,
+// alive and coverage events), drawn on the map, and a panel per boat.
 "use strict";
 
 const COLOURS = ["#ff8c1a", "#3fc1ff", "#b4e33d", "#ff5ca8", "#c792ff", "#ffd23f"];
 const MAX_TRACK = 20000; // the server's bound too; beyond it the track is thinned
+const COVERAGE_OPACITY = 0.55; // the raster over the mosaic: both stay readable
+const GAP_FILL = "rgba(255, 59, 48, 0.2)";
+const GAP_STROKE = "#ff3b30";
+const GAP_DASH = [6, 4];
 
 const model = { epsg: null, vehicles: new Map() };
 const prefs = new Map(); // "vehicle/survey" -> {visible, opacity}: kept across resyncs
 const view = new MapView(document.getElementById("canvas"));
 let frameWanted = false;
 let panelWanted = false;
+let showCoverage = true;
 
 // --- the model -----------------------------------------------------------------------------
 
@@ -17,7 +22,7 @@ function vehicleOf(name) {
   let v = model.vehicles.get(name);
   if (!v) {
     v = { name, alive: null, status: null, pose: null, track: [], trackEpsg: null,
-          surveys: new Map() };
+          surveys: new Map(), coverage: new Map() };
     model.vehicles.set(name, v);
   }
   return v;
@@ -66,6 +71,78 @@ function takeTile(v, s, t) {
   });
 }
 
+function coverageOf(v, id) {
+  let c = v.coverage.get(id);
+  if (!c) {
+    c = { id, summary: null, raster: null, img: null, imgRaster: null, imgVersion: -1,
+          loading: -1, drawnVersion: -1, gaps: [], gapsKey: "", gapsDrawn: -1 };
+    v.coverage.set(id, c);
+  }
+  return c;
+}
+
+// Take a survey's coverage ({summary, raster}, either null until it came): each replaces
+// the one held only when its version is newer; a newer raster's PNG is fetched.
+function takeCoverage(v, id, d) {
+  const c = coverageOf(v, id);
+  if (d.summary && (!c.summary || d.summary.version > c.summary.version)) {
+    c.summary = d.summary;
+    c.gapsKey = ""; // projected again when next drawn
+  }
+  if (d.raster && (!c.raster || d.raster.version > c.raster.version)) c.raster = d.raster;
+  const raster = c.raster;
+  if (!raster || c.imgVersion >= raster.version || c.loading >= raster.version) return;
+  const version = raster.version;
+  c.loading = version;
+  const img = new Image();
+  img.src = `/api/coverage/${encodeURIComponent(v.name)}/${encodeURIComponent(id)}.png` +
+    `?v=${version}`;
+  img.decode().then(() => {
+    if (version > c.imgVersion) {
+      c.img = img;
+      c.imgRaster = raster; // where this image lies, whatever comes after it
+      c.imgVersion = version;
+      requestFrame();
+    }
+  }).catch(() => {}).finally(() => {
+    if (c.loading === version) c.loading = -1;
+  });
+}
+
+// The polygons (each a list of rings of [lon, lat]) of a GeoJSON FeatureCollection's
+// Polygon and MultiPolygon features; anything malformed is left out.
+function polygonsOf(collection) {
+  const isRing = (ring) => Array.isArray(ring) && ring.length >= 3 && ring.every((pt) =>
+    Array.isArray(pt) && Number.isFinite(pt[0]) && Number.isFinite(pt[1]));
+  const out = [];
+  const features = collection && Array.isArray(collection.features) ? collection.features : [];
+  for (const f of features) {
+    const g = f && f.geometry;
+    const polygons = !g ? [] : g.type === "Polygon" ? [g.coordinates]
+      : g.type === "MultiPolygon" ? g.coordinates : [];
+    for (const rings of Array.isArray(polygons) ? polygons : []) {
+      if (Array.isArray(rings) && rings.length && rings.every(isRing)) out.push(rings);
+    }
+  }
+  return out;
+}
+
+// A survey's gaps as rings of [east, north] in the page's UTM zone (cached per summary).
+function gapsOf(c) {
+  const zone = model.epsg !== null ? seamapUtm.zoneOf(model.epsg) : null;
+  if (!zone || !c.summary) return [];
+  const key = `${c.summary.version}/${model.epsg}`;
+  if (c.gapsKey !== key) {
+    c.gaps = polygonsOf(c.summary.gaps).map((rings) => rings.map((ring) => ring.map(
+      ([lon, lat]) => {
+        const p = seamapUtm.fromLatLon(lat, lon, zone.zone, zone.south);
+        return [p.e, p.n];
+      })));
+    c.gapsKey = key;
+  }
+  return c.gaps;
+}
+
 function applyState(state) {
   model.epsg = state.epsg;
   const seen = new Set();
@@ -80,6 +157,9 @@ function applyState(state) {
     for (const [id, rawSurvey] of Object.entries(raw.surveys)) {
       const s = surveyOf(v, id, rawSurvey);
       for (const t of rawSurvey.tiles) takeTile(v, s, t);
+    }
+    for (const [id, rawCoverage] of Object.entries(raw.coverage || {})) {
+      takeCoverage(v, id, rawCoverage);
     }
   }
   for (const name of [...model.vehicles.keys()]) if (!seen.has(name)) model.vehicles.delete(name);
@@ -140,6 +220,7 @@ function draw() {
       }
     }
   }
+  if (showCoverage) drawCoverage();
   for (const v of model.vehicles.values()) {
     if (v.trackEpsg === model.epsg) view.drawTrack(v.track, colourOf(v.name));
   }
@@ -154,6 +235,27 @@ function draw() {
                   v.alive === false);
   }
   drawScale();
+}
+
+// Each shown survey's coverage raster over the mosaics, then every gap over the rasters.
+function drawCoverage() {
+  const shown = [];
+  for (const v of model.vehicles.values()) {
+    for (const c of v.coverage.values()) if (pref(v.name, c.id).visible) shown.push(c);
+  }
+  for (const c of shown) {
+    const r = c.imgRaster;
+    if (c.img && r.epsg === model.epsg && view.drawImage(
+      c.img, r.west, r.north, r.cols * r.cell_m, r.rows * r.cell_m, COVERAGE_OPACITY)) {
+      c.drawnVersion = c.imgVersion;
+    }
+  }
+  for (const c of shown) {
+    if (!c.summary || model.epsg === null) continue;
+    const gaps = gapsOf(c);
+    if (gaps.length) view.drawPolygons(gaps, GAP_FILL, GAP_STROKE, GAP_DASH);
+    c.gapsDrawn = c.summary.version;
+  }
 }
 
 function drawScale() {
@@ -175,6 +277,12 @@ function fitAll() {
         w = Math.min(w, t.west); e = Math.max(e, t.west + side);
         n = Math.max(n, t.north); s = Math.min(s, t.north - side);
       }
+    }
+    for (const c of v.coverage.values()) {
+      const r = c.raster;
+      if (!r || r.epsg !== model.epsg) continue;
+      w = Math.min(w, r.west); e = Math.max(e, r.west + r.cols * r.cell_m);
+      n = Math.max(n, r.north); s = Math.min(s, r.north - r.rows * r.cell_m);
     }
     if (v.trackEpsg === model.epsg) {
       for (const [pe, pn] of v.track) {
@@ -260,13 +368,41 @@ function statusRows(v) {
   return rows;
 }
 
+// A survey's coverage in one line: "covered 63.4 % of 1,200 m² · 2 gaps (420 m²)", or
+// "seen 812 m²" when its area is not known; "· final" once the survey-end pass made it.
+function coverageText(c) {
+  const s = c && c.summary;
+  if (!s) return "";
+  const m2 = (x) => `${Math.round(x).toLocaleString("en-US")} m²`;
+  const a = s.area;
+  let text;
+  if (a && typeof a.fraction === "number" && typeof a.area_m2 === "number") {
+    text = `covered ${(100 * a.fraction).toFixed(1)} % of ${m2(a.area_m2)}`;
+    if (typeof a.gaps === "number") {
+      const size = typeof a.gaps_m2 === "number" && a.gaps ? ` (${m2(a.gaps_m2)})` : "";
+      text += a.gaps ? ` · ${a.gaps} gap${a.gaps === 1 ? "" : "s"}${size}` : " · no gaps";
+    }
+  } else if (typeof s.seen_m2 === "number") {
+    text = `seen ${m2(s.seen_m2)}`;
+  } else {
+    return "";
+  }
+  return s.final === true ? `${text} · final` : text;
+}
+
+// The surveys of a boat the panel lists: those with tiles or coverage.
+function surveyIds(v) {
+  return [...new Set([...v.surveys.keys(), ...v.coverage.keys()])]
+    .sort((a, b) => a.localeCompare(b));
+}
+
 // The panel is rebuilt when its shape changes (boats, surveys, away or live); otherwise
 // only its texts change, so a click or a slider in it is never cut short.
 let panelShape = "";
 
 function shapeOf() {
   return JSON.stringify([...model.vehicles.values()].map((v) =>
-    [v.name, v.alive, liveSurvey(v), [...v.surveys.keys()]]));
+    [v.name, v.alive, liveSurvey(v), surveyIds(v)]));
 }
 
 function updatePanelTexts() {
@@ -275,9 +411,11 @@ function updatePanelTexts() {
     if (!section) continue;
     const dds = section.querySelectorAll("dl.status dd");
     statusRows(v).forEach(([, val], i) => { if (dds[i]) dds[i].textContent = val; });
-    for (const s of v.surveys.values()) {
-      const li = section.querySelector(`li[data-survey="${CSS.escape(s.id)}"] .tiles`);
-      if (li) li.textContent = ` ${s.tiles.size} tiles`;
+    for (const id of surveyIds(v)) {
+      const li = section.querySelector(`li[data-survey="${CSS.escape(id)}"]`);
+      if (!li) continue;
+      li.querySelector(".tiles").textContent = ` ${v.surveys.get(id)?.tiles.size ?? 0} tiles`;
+      li.querySelector(".coverage").textContent = coverageText(v.coverage.get(id));
     }
   }
 }
@@ -312,29 +450,29 @@ function renderPanel() {
     section.append(el("div", { class: "downloads" }, "Download: ", track));
     const list = el("ul", { class: "surveys" });
     const live = liveSurvey(v);
-    for (const s of [...v.surveys.values()].sort((a, b) => a.id.localeCompare(b.id))) {
-      list.append(surveyRow(v, s, s.id === live));
-    }
+    for (const id of surveyIds(v)) list.append(surveyRow(v, id, id === live));
     section.append(el("h3", {}, "Surveys"), list);
     sections.push(section);
   }
   root.replaceChildren(...sections);
 }
 
-function surveyRow(v, s, live) {
-  const p = pref(v.name, s.id);
-  const show = el("input", { type: "checkbox", "aria-label": `show ${s.id}` });
+function surveyRow(v, id, live) {
+  const p = pref(v.name, id);
+  const show = el("input", { type: "checkbox", "aria-label": `show ${id}` });
   show.checked = p.visible;
   show.addEventListener("change", () => { p.visible = show.checked; requestFrame(); });
   const opacity = el("input", { type: "range", min: "0", max: "100", title: "opacity",
-                                "aria-label": `opacity of ${s.id}` });
+                                "aria-label": `opacity of ${id}` });
   opacity.value = String(Math.round(p.opacity * 100));
   opacity.addEventListener("input", () => { p.opacity = opacity.value / 100; requestFrame(); });
   const tif = el("a", { href: `/files/${encodeURIComponent(v.name)}/` +
-    `${encodeURIComponent(s.id)}/mosaic.tif`, download: "" }, "mosaic.tif");
-  return el("li", { "data-survey": s.id },
-    el("label", {}, show, ` ${s.id}`, live ? el("span", { class: "live" }, " live") : ""),
-    el("span", { class: "tiles" }, ` ${s.tiles.size} tiles`), opacity, tif);
+    `${encodeURIComponent(id)}/mosaic.tif`, download: "" }, "mosaic.tif");
+  const tiles = v.surveys.get(id)?.tiles.size ?? 0;
+  return el("li", { "data-survey": id },
+    el("label", {}, show, ` ${id}`, live ? el("span", { class: "live" }, " live") : ""),
+    el("span", { class: "tiles" }, ` ${tiles} tiles`), opacity, tif,
+    el("span", { class: "coverage" }, coverageText(v.coverage.get(id))));
 }
 
 // --- wiring --------------------------------------------------------------------------------
@@ -344,6 +482,11 @@ view.onPointer = showPointer;
 document.getElementById("fit").addEventListener("click", () => {
   view.touched = false;
   fitAll();
+});
+const coverageToggle = document.getElementById("show-coverage");
+coverageToggle.addEventListener("change", () => {
+  showCoverage = coverageToggle.checked;
+  requestFrame();
 });
 const toggle = document.getElementById("panel-toggle");
 toggle.addEventListener("click", () => {
@@ -367,6 +510,11 @@ function connect() {
   on("pose", applyPose);
   on("status", (d) => { vehicleOf(d.vehicle).status = d.status; changed(); });
   on("alive", (d) => { vehicleOf(d.vehicle).alive = d.alive; changed(); });
+  on("coverage", (d) => {
+    if (model.epsg === null && d.raster) model.epsg = d.raster.epsg;
+    takeCoverage(vehicleOf(d.vehicle), d.survey, d);
+    changed();
+  });
   events.onopen = () => { conn.textContent = ""; conn.className = ""; };
   // EventSource reconnects by itself; the new stream starts with a fresh state.
   events.onerror = () => { conn.textContent = "shore station unreachable, retrying…";
@@ -386,5 +534,10 @@ window.seamap = {
     const s = model.vehicles.get(vehicle)?.surveys.get(survey);
     const t = s?.tiles.get(`${col}/${row}`);
     return t ? t.drawnVersion : -1;
+  },
+  // The versions of a survey's coverage raster and gaps last drawn (-1: never).
+  coverageDrawn(vehicle, survey) {
+    const c = model.vehicles.get(vehicle)?.coverage.get(survey);
+    return { raster: c ? c.drawnVersion : -1, gaps: c ? c.gapsDrawn : -1 };
   },
 };

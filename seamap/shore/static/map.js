@@ -95,17 +95,49 @@ class MapView {
   // Draw a tile image whose top-left corner is (west, north) and side `sideM` metres;
   // false when it lies off screen.
   drawTile(img, west, north, sideM, opacity) {
+    return this.drawImage(img, west, north, sideM, sideM, opacity);
+  }
+
+  // Draw a north-up image whose top-left corner is (west, north), `widthM` by `heightM`
+  // metres; false when it lies off screen.
+  drawImage(img, west, north, widthM, heightM, opacity) {
     const p = this.utmToScreen(west, north);
-    const side = sideM * this.scale;
-    if (p.x > this.width || p.y > this.height || p.x + side < 0 || p.y + side < 0) return false;
+    const w = widthM * this.scale, h = heightM * this.scale;
+    if (p.x > this.width || p.y > this.height || p.x + w < 0 || p.y + h < 0) return false;
     const ctx = this.ctx;
-    // Zoomed in (a mosaic pixel covers a screen pixel or more): nearest neighbour, so
-    // the values drawn are the mosaic's.
-    ctx.imageSmoothingEnabled = side * this.dpr < img.naturalWidth;
+    // Zoomed in (an image pixel covers a screen pixel or more): nearest neighbour, so
+    // the values drawn are the image's.
+    ctx.imageSmoothingEnabled = w * this.dpr < img.naturalWidth;
     ctx.globalAlpha = opacity;
-    ctx.drawImage(img, p.x, p.y, side, side);
+    ctx.drawImage(img, p.x, p.y, w, h);
     ctx.globalAlpha = 1;
     return true;
+  }
+
+  // Draw polygons, each a list of rings of [east, north] (UTM metres; holes are rings
+  // too: filled even-odd), filled with `fill` and outlined with `stroke`, dashed by `dash`.
+  drawPolygons(polygons, fill, stroke, dash) {
+    const ctx = this.ctx;
+    ctx.save();
+    ctx.lineWidth = 2;
+    ctx.lineJoin = "round";
+    ctx.setLineDash(dash);
+    for (const rings of polygons) {
+      ctx.beginPath();
+      for (const ring of rings) {
+        ring.forEach(([e, n], i) => {
+          const p = this.utmToScreen(e, n);
+          if (i === 0) ctx.moveTo(p.x, p.y);
+          else ctx.lineTo(p.x, p.y);
+        });
+        ctx.closePath();
+      }
+      ctx.fillStyle = fill;
+      ctx.fill("evenodd");
+      ctx.strokeStyle = stroke;
+      ctx.stroke();
+    }
+    ctx.restore();
   }
 
   drawTrack(points, colour) {

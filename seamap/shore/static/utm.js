@@ -1,8 +1,8 @@
-// UTM (WGS84) to latitude and longitude: the inverse transverse Mercator projection by
+// UTM (WGS84) to latitude and longitude and back: the transverse Mercator projection by
 // Krüger's series to sixth order in n, as given by C. F. F. Karney, "Transverse Mercator
 // with an accuracy of a few nanometers", J. Geodesy 85 (2011) 475-485,
-// doi:10.1007/s00190-011-0445-3 (eqs. 7, 11-21, 26-27, 36). Within the UTM zones its error
-// is far below a millimetre.
+// doi:10.1007/s00190-011-0445-3 (inverse: eqs. 7, 11-21, 26-27, 36; forward: eqs. 7-12,
+// 35). Within the UTM zones its error is far below a millimetre.
 "use strict";
 
 const seamapUtm = (() => {
@@ -17,7 +17,18 @@ const seamapUtm = (() => {
   const n2 = n * n, n3 = n2 * n, n4 = n3 * n, n5 = n4 * n, n6 = n5 * n;
   // Rectifying radius A (eq. 14).
   const A = (a / (1 + n)) * (1 + n2 / 4 + n4 / 64 + n6 / 256);
-  // Karney's beta_j (eq. 36), index j-1.
+  // Karney's alpha_j (eq. 35), index j-1: the forward series.
+  const alpha = [
+    n / 2 - (2 / 3) * n2 + (5 / 16) * n3 + (41 / 180) * n4 - (127 / 288) * n5 +
+      (7891 / 37800) * n6,
+    (13 / 48) * n2 - (3 / 5) * n3 + (557 / 1440) * n4 + (281 / 630) * n5 -
+      (1983433 / 1935360) * n6,
+    (61 / 240) * n3 - (103 / 140) * n4 + (15061 / 26880) * n5 + (167603 / 181440) * n6,
+    (49561 / 161280) * n4 - (179 / 168) * n5 + (6601661 / 7257600) * n6,
+    (34729 / 80640) * n5 - (3418889 / 1995840) * n6,
+    (212378941 / 319334400) * n6,
+  ];
+  // Karney's beta_j (eq. 36), index j-1: the inverse series.
   const beta = [
     n / 2 - (2 / 3) * n2 + (37 / 96) * n3 - (1 / 360) * n4 - (81 / 512) * n5 +
       (96199 / 604800) * n6,
@@ -75,6 +86,32 @@ const seamapUtm = (() => {
     return { lat: lat * deg, lon: lon * deg, convergenceDeg: gamma * deg };
   }
 
+  // UTM easting and northing (metres) in `zone` (1..60), southern hemisphere when `south`,
+  // of a point at latitude and longitude (degrees, WGS84); the zone need not be the
+  // point's own (a gap straddling a zone edge stays on the survey's grid).
+  function fromLatLon(lat, lon, zone, south) {
+    const rad = Math.PI / 180;
+    const lon0 = ((zone - 1) * 6 - 180 + 3) * rad;
+    let lambda = lon * rad - lon0;
+    lambda = Math.atan2(Math.sin(lambda), Math.cos(lambda)); // into (-pi, pi]
+    const tau = Math.tan(lat * rad);
+    const sigma = Math.sinh(e * Math.atanh((e * tau) / Math.hypot(1, tau))); // eq. 9
+    const tauP = tau * Math.hypot(1, sigma) - sigma * Math.hypot(1, tau); // eq. 7
+    const cosL = Math.cos(lambda);
+    const xiP = Math.atan2(tauP, cosL); // eq. 10
+    const etaP = Math.asinh(Math.sin(lambda) / Math.hypot(tauP, cosL));
+    let xi = xiP, eta = etaP;
+    for (let j = 1; j <= 6; j++) { // eq. 11
+      const a2 = alpha[j - 1];
+      xi += a2 * Math.sin(2 * j * xiP) * Math.cosh(2 * j * etaP);
+      eta += a2 * Math.cos(2 * j * xiP) * Math.sinh(2 * j * etaP);
+    }
+    return {
+      e: falseEasting + k0 * A * eta,
+      n: (south ? southFalseNorthing : 0) + k0 * A * xi,
+    };
+  }
+
   // The zone and hemisphere of a WGS84 UTM EPSG code (326zz north, 327zz south); null
   // for any other code.
   function zoneOf(epsg) {
@@ -83,5 +120,5 @@ const seamapUtm = (() => {
     return null;
   }
 
-  return { toLatLon, zoneOf };
+  return { toLatLon, fromLatLon, zoneOf };
 })();
