@@ -160,10 +160,11 @@ COVERAGE_SUMMARY_KEYS = (
 """What a coverage summary holds (``coverage_summary``)."""
 
 
-def parse_coverage_summary(data: bytes) -> dict[str, Any]:
-    """A coverage summary (JSON object) checked for its keys and types; ValueError naming
-    what is wrong. ``area`` is None or ``{"area_m2", "covered_m2", "fraction", "gaps",
-    "gaps_m2", "min_gap_m2"}``; ``gaps`` a GeoJSON FeatureCollection (WGS84)."""
+def parse_coverage_summary(data: bytes, survey: str | None = None) -> dict[str, Any]:
+    """A coverage summary (JSON object) checked for its keys and types (and, given
+    ``survey``, that it is that survey's); ValueError naming what is wrong. ``area`` is
+    None or ``{"area_m2", "covered_m2", "fraction", "gaps", "gaps_m2", "min_gap_m2"}``;
+    ``gaps`` a GeoJSON FeatureCollection (WGS84)."""
     try:
         summary = json.loads(data)
     except ValueError as exc:
@@ -173,6 +174,20 @@ def parse_coverage_summary(data: bytes) -> dict[str, Any]:
     missing = [key for key in COVERAGE_SUMMARY_KEYS if key not in summary]
     if missing:
         raise ValueError(f"coverage summary lacks {', '.join(missing)}")
+    if survey is not None and summary["survey"] != survey:
+        raise ValueError(
+            f"coverage summary: names survey {summary['survey']!r}, published under {survey!r}"
+        )
+    if not isinstance(summary["final"], bool):
+        raise ValueError("coverage summary: final is not true or false")
+    if not isinstance(summary["version"], int) or isinstance(summary["version"], bool):
+        raise ValueError("coverage summary: version is not an integer")
+    for key in ("time", "cell_m", "seen_m2", "covered_m2"):
+        value = summary[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"coverage summary: {key} is not a number")
+        if not math.isfinite(value):
+            raise ValueError(f"coverage summary: {key} is not finite")
     area = summary["area"]
     if area is not None:
         if not isinstance(area, dict):

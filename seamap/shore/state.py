@@ -240,12 +240,13 @@ class ShoreState:
         True when taken, False when its ``version`` is not newer than the one held."""
         survey = self._coverage_survey(where)
         try:
-            summary = parse_coverage_summary(payload)
+            summary = parse_coverage_summary(payload, where.survey)
         except ValueError as exc:
             raise BadPayload(str(exc)) from None
-        problem = _summary_problem(summary, where.survey)
-        if problem:
-            raise BadPayload(f"coverage summary: {problem}")
+        try:  # the files and the page are strict JSON
+            json_bytes(summary)
+        except (ValueError, TypeError):
+            raise BadPayload("coverage summary: holds NaN or Infinity") from None
         held = survey.coverage.summary if survey is not None else None
         if held is not None and summary["version"] <= held["version"]:
             return False
@@ -328,28 +329,6 @@ class ShoreState:
         """Whether the vehicle's liveliness token is up (None: never seen)."""
         held = self.vehicles.get(vehicle)
         return held.alive if held is not None else None
-
-
-def _summary_problem(summary: dict[str, Any], survey: str) -> str | None:
-    """What ``parse_coverage_summary`` leaves unchecked that the shore relies on: the
-    survey it names, an integer version, a boolean ``final``, areas (m²) as numbers, and
-    nothing that strict JSON cannot hold (the files and the page are strict JSON)."""
-    if summary["survey"] != survey:
-        return f"names survey {summary['survey']!r}, published under {survey!r}"
-    version = summary["version"]
-    if not isinstance(version, int) or isinstance(version, bool):
-        return "version is not an integer"
-    if not isinstance(summary["final"], bool):
-        return "final is not true or false"
-    for key in ("seen_m2", "covered_m2"):
-        value = summary[key]
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            return f"{key} is not a number"
-    try:
-        json_bytes(summary)
-    except (ValueError, TypeError):
-        return "holds NaN or Infinity"
-    return None
 
 
 def _png_size(payload: bytes) -> tuple[int, int]:

@@ -159,6 +159,9 @@ def test_state_refuses_a_summary_that_strict_json_cannot_hold():
     state = ShoreState()
     where = CoverageKeyParts(VEHICLE, SURVEY, raster=False)
     payload = json_bytes(coverage_summary(1)).replace(b'"seen_m2":812.5', b'"seen_m2":NaN')
+    with pytest.raises(Exception, match="seen_m2 is not finite"):
+        state.take_coverage_summary(where, payload)
+    payload = json_bytes(coverage_summary(1)).replace(b'"min_gap_m2":1.0', b'"min_gap_m2":NaN')
     with pytest.raises(Exception, match="NaN or Infinity"):
         state.take_coverage_summary(where, payload)
     assert state.coverage(VEHICLE, SURVEY) is None
