@@ -5,6 +5,7 @@ and two boats of neighbouring areas through the router."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -36,6 +37,12 @@ def test_demo_runs_the_whole_system_on_loopback(tmp_path: Path, secure: bool) ->
     (survey,) = (out / "boat" / "surveys").iterdir()
     for name in ("mosaic.tif", "mosaic.png", "trajectory.csv", "report.json", "sonar-001.oculus"):
         assert (survey / name).is_file()
+    # The planned area's covered fraction and gaps: 80 pings leave most of it to do.
+    area = json.loads((survey / "report.json").read_text())["coverage"]["area"]
+    assert f"coverage: {100 * area['covered_fraction']:.1f} % of the planned area" in text
+    assert area["gaps"] >= 1 and (survey / "gaps.geojson").is_file()
+    assert (survey / "replan.plan").is_file() and "the way back to them" in text
+    assert ", covered " in text  # the live fraction in the progress lines
     shore = out / "shore" / "demo"
     assert (shore / survey.name / "mosaic.tif").is_file()
     assert (shore / "track.csv").read_text().startswith("time,lat,lon,east,north,heading_deg")

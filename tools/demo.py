@@ -8,9 +8,13 @@
    router``, a child; its endpoint ``tcp/127.0.0.1:7447`` unless told otherwise; vehicle
    ``demo``, then ``demo2``, ``demo3``...); the shore station (``seamap shore``, another
    child) follows every boat, and with ``--web`` serves the live map page.
+   Each daemon knows its survey's area (the simulator's ``area.geojson``, as ``[mission]
+   area``): its status and zenoh carry the covered fraction as it maps.
 3. At the end of the playback a survey stop request goes over zenoh to each boat, as the
-   shore would send it; the survey-end passes write the result folders and publish the
-   final tiles; the shore's mosaics are compared with the daemons'.
+   shore would send it; the survey-end passes write the result folders (with the area's
+   gaps, ``gaps.geojson``, and with ``[mission] replan_at_end`` the lanes back to them)
+   and publish the final tiles and coverage; the shore's mosaics are compared with the
+   daemons'.
 4. Accuracy against the simulator's truth: the truth's ping times are moved to the
    times the daemon stamped on receipt (matched by ping id), and the recorded survey is
    scored by replaying it — the same computation as the daemon's survey-end pass.
@@ -252,7 +256,8 @@ async def _live(options: DemoOptions, boats: list[_Boat]) -> int:
                       f"{result['frames_read']} frames mapped ({live} live), survey-end pass "
                       f"{result['seconds']:.1f} s")  # fmt: skip
                 print(f"      result folder: {folder} (mosaic.tif, mosaic.png, trajectory.csv, "
-                      "report.json)")  # fmt: skip
+                      "report.json, coverage.tif, coverage.png, gaps.geojson)")  # fmt: skip
+                print(f"      {_coverage_line(folder, result)}")
                 _tell_shore(shore_tif, same)
             if web:
                 print("      the live map page stays up: Ctrl-C (or SIGTERM) ends the demo",
@@ -325,6 +330,7 @@ def _daemon_config(
     data.setdefault("sonar", {}).update(address="127.0.0.1", tcp_port=sonar_port)
     data.setdefault("mavlink", {}).update(url=f"udpin:127.0.0.1:{mavlink_port}")
     data["zenoh"] = dataclasses.asdict(zenoh_table)
+    data["mission"] = {"area": str((sim / "area.geojson").resolve()), "replan_at_end": True}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_config(config_from_dict(data)))
     return path
@@ -369,14 +375,42 @@ async def _follow(boats: list[_Boat]) -> None:
                     f"{boat.play.sonar.pings_sent}/{boat.play.pings_total}, {frames['mapped']} "
                     f"mapped, {frames['rejected']} rejected, {frames['skipped']} skipped, lag "
                     f"{status['lag_s']:.2f} s, tiles published {status.get('tiles_published', 0)}"
-                    f", sonar {'up' if links['sonar']['up'] else 'down'}, autopilot "
-                    f"{'up' if links['mavlink']['up'] else 'down'}",
+                    f"{_covered(status)}, sonar {'up' if links['sonar']['up'] else 'down'}, "
+                    f"autopilot {'up' if links['mavlink']['up'] else 'down'}",
                     flush=True,
                 )
     # The last pings leave the reorder window; the recorder flushes.
     await asyncio.sleep(1.5)
     for boat in boats:
         boat.status = await _status(boat.state_dir) or boat.status
+
+
+def _covered(status: dict[str, Any]) -> str:
+    """The status's covered fraction of the survey's area, as ", covered 63.4 %"."""
+    coverage = status.get("coverage")
+    if not coverage or not coverage.get("area"):
+        return ""
+    return f", covered {100 * coverage['area']['fraction']:.1f} %"
+
+
+def _coverage_line(folder: Path, result: dict[str, Any]) -> str:
+    """What the survey covered of its planned area, its gaps and the plan back to them."""
+    report = json.loads((folder / "report.json").read_text())
+    area = report["coverage"].get("area")
+    if area is None:
+        return f"coverage: {report['coverage']['covered_m2']:.0f} m² seen (no area known)"
+    line = (
+        f"coverage: {100 * area['covered_fraction']:.1f} % of the planned area "
+        f"({area['area_m2']:.0f} m²), {area['gaps']} gaps of {area['gaps_m2']:.1f} m² "
+        f"(gaps.geojson)"
+    )
+    replan = result.get("replan")
+    if replan and replan.get("gaps"):
+        line += (
+            f"; the way back to them: {folder / 'replan.plan'} ({replan['lanes']} lanes, "
+            f"{replan['distance_m']:.0f} m, `seamap survey start` to run it)"
+        )
+    return line
 
 
 def _stop_survey(shore: ZenohConfig, vehicle: str = VEHICLE) -> str:

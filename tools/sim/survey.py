@@ -213,9 +213,10 @@ def simulate(scenario: str, seed: int, out: Path, **overrides: Any) -> Simulatio
     """Simulate survey ``scenario`` with ``seed`` into folder ``out`` (created if needed).
 
     Writes sonar.oculus, nav.tlog, truth.json, seabed.tif, seabed_height.tif, site.toml
-    and area.geojson (see ``tools.sim.writer`` for what each holds). ``overrides`` replace scenario fields,
-    e.g. ``flavour="px4"``, ``max_pings=20``, ``duration_s=30``, ``n_beams=128``,
-    ``range_resolution_m``, ``ping_rate_hz``, ``current_mps``, ``gps_bias_sigma_m``,
+    and area.geojson (see ``tools.sim.writer`` for what each holds). ``overrides`` replace
+    scenario fields, e.g. ``skip_lanes=(1,)``, ``flavour="px4"``, ``max_pings=20``,
+    ``duration_s=30``, ``n_beams=128``, ``range_resolution_m``, ``ping_rate_hz``,
+    ``current_mps``, ``gps_bias_sigma_m``,
     ``sonar_latency_s``, ``randomise=False``; an override is never redrawn by the field
     day. A bad name, key or value raises SeamapError.
     """
