@@ -55,8 +55,17 @@ VEHICLE = "testboat"
 SLACK_S = 5.0  # what a refusal may take beyond its time-out on a slow machine
 
 
-def write_plan(folder: Path, firmware_type: int = 3) -> Path:
-    """A small QGroundControl plan: set the speed, then four waypoints (relative alt 0)."""
+AREA = {
+    "type": "Polygon",
+    "coordinates": [[[8.5455, 47.3977], [8.5459, 47.3977], [8.5459, 47.3984], [8.5455, 47.3984],
+                     [8.5455, 47.3977]]],
+}  # fmt: skip
+"""The area the small plan covers (GeoJSON, WGS84), as ``seamap survey plan`` writes it."""
+
+
+def write_plan(folder: Path, firmware_type: int = 3, area: dict[str, Any] | None = None) -> Path:
+    """A small QGroundControl plan: set the speed, then four waypoints (relative alt 0);
+    with ``area``, the area it covers as ``seamap survey plan`` keeps it."""
     items: list[dict[str, Any]] = [
         {"type": "SimpleItem", "autoContinue": True, "command": 178, "doJumpId": 1,
          "frame": 2, "params": [1, SPEED_MPS, -1, 0, 0, 0, 0]},
@@ -83,6 +92,8 @@ def write_plan(folder: Path, firmware_type: int = 3) -> Path:
             "version": 2,
         },
     }
+    if area is not None:
+        plan["seamap"] = {"version": 1, "area": area}
     path = folder / ("ardupilot.plan" if firmware_type == 3 else "px4.plan")
     path.write_text(json.dumps(plan, indent=2))
     return path
@@ -547,6 +558,43 @@ def test_survey_start_on_the_command_line(
     assert fake.requests == [{"action": "start"}]
     wait_for(lambda: autopilot.uploads and autopilot.mode_requests)
     assert len(autopilot.uploads) == 1 and ("SUCCESS", "MISSION") in autopilot.mode_requests
+
+
+def test_survey_start_hands_the_plans_area_to_the_daemon(
+    tmp_path: Path,
+    autopilot: FakeAutopilot,
+    port: int,
+    daemon: tuple[FakeDaemon, int],
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    fake, zenoh_port = daemon
+    capfd.readouterr()
+    status = main(
+        ["survey", "start", str(write_plan(tmp_path, area=AREA)), "--connect", url_of(port),
+         "--daemon", f"tcp/127.0.0.1:{zenoh_port}", "--vehicle", VEHICLE]
+    )  # fmt: skip
+    assert status == 0
+    out = capfd.readouterr().out.splitlines()
+    assert out[1:] == [f"survey X recording on {VEHICLE} (covering the plan's area)"]
+    assert fake.requests == [{"action": "start", "area": AREA}]
+
+
+def test_survey_start_refuses_a_plan_with_a_bad_area_before_anything_moves(
+    tmp_path: Path, autopilot: FakeAutopilot, port: int, capfd: pytest.CaptureFixture[str]
+) -> None:
+    bow_tie = [[8.5455, 47.3977], [8.5459, 47.3984], [8.5459, 47.3977], [8.5455, 47.3984]]
+    crossed = {"type": "Polygon", "coordinates": [bow_tie]}
+    plan = write_plan(tmp_path, area=crossed)
+    capfd.readouterr()
+    assert main(["survey", "start", str(plan), "--connect", url_of(port)]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"seamap survey: {plan}: the plan's seamap.area"), (
+        err
+    )
+    assert "crosses itself" in err[0]
+    assert "Traceback" not in err[0]
+    time.sleep(0.5)
+    assert not autopilot.uploads
 
 
 def test_a_silent_daemon_is_reported_and_the_mission_runs_on(

@@ -37,6 +37,7 @@ from planning import (
 )
 from seamap.config import SiteConfig, SonarConfig
 from seamap.errors import SeamapError
+from seamap.plan_area import parse_area
 from seamap.plan_files import DEFAULT_OVERLAP, read_plan, swath_from_config
 from seamap.plan_files import plan_survey as plan_files
 
@@ -593,6 +594,14 @@ def test_plan_survey_writes_four_files_and_a_summary(planned: dict) -> None:
     np.testing.assert_allclose(
         [[lat, lon] for lon, lat in points], [w[:2] for w in mission.waypoints], atol=1e-8
     )
+    # The .plan carries the area for the daemon (``seamap survey start`` sends it), holes
+    # kept, beside QGroundControl's keys; it reads back to the same area.
+    doc = json.loads(Path(planned["files"][0]).read_text())
+    assert set(doc) == {"fileType", "version", "groundStation", "mission", "geoFence",
+                        "rallyPoints", "seamap"}  # fmt: skip
+    carried = parse_area(json.dumps(doc["seamap"]["area"]), "plan")
+    assert carried.area.geometry.area == pytest.approx(WITH_HOLE.area_m2, rel=1e-3)
+    assert len(doc["seamap"]["area"]["coordinates"][0]) == 2  # the outline and its hole
 
 
 _LOAD_WAYPOINTS = """

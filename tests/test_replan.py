@@ -178,6 +178,15 @@ def test_the_plan_files_are_the_survey_plans_and_show_the_gaps(replanned: dict) 
     assert area["properties"]["covered_fraction"] == pytest.approx(
         1 - STRIPE.area / (2400 - 30), abs=0.01
     )
+    # What the gap mission is to cover, for the daemon's coverage when it is started: the
+    # gaps, not the whole area.
+    target = load_plan(replanned["files"][0]).area
+    assert target is not None and target["type"] == "MultiPolygon"
+    (gap,) = target["coordinates"]
+    x, y = FRAME.to_local([p[1] for p in gap[0]], [p[0] for p in gap[0]])
+    outline = shapely.Polygon(np.column_stack([x, y]))
+    assert outline.area == pytest.approx(replanned["gaps_m2"], rel=1e-3)
+    assert shapely.hausdorff_distance(outline, STRIPE) < 1.0
 
 
 def test_two_gaps_are_taken_nearest_first_from_where_the_boat_is(tmp_path: Path) -> None:
