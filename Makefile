@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest chromium accuracy fuzz overload navloss soak clean
+.PHONY: demo test lint typecheck pytest chromium accuracy paper fuzz overload navloss soak clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -49,6 +49,12 @@ chromium:
 accuracy: $(STAMP)
 	$(BIN)/python -m tools.accuracy --out $(ACCURACY_OUT) --jobs $(JOBS)
 
+# The paper's Tables I-V by `seamap evaluate` over simulated quadrat surveys, beside the
+# paper's numbers (paper-out/summary.md; about 15 minutes a survey on one core).
+PAPER_OUT ?= paper-out
+paper: $(STAMP)
+	$(BIN)/python -m tools.paper --out $(PAPER_OUT) --jobs $(JOBS)
+
 # Fuzzing at depth: the framer and message parsers, the log readers (.oculus v1/v2, .tlog,
 # .bin) and the config loader, FUZZ_EXAMPLES generated and mutated inputs each (not in
 # `make test`, which runs the same tests with a few hundred).
@@ -74,4 +80,4 @@ soak: $(STAMP)
 	$(BIN)/python -m tools.soak --out soak-out
 
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out soak-out
+	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out soak-out $(PAPER_OUT)

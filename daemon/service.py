@@ -893,4 +893,8 @@ class Daemon:
         survey = self._survey_id() or "no survey"
         if not snap:
             return survey
-        return f"{survey}: {snap['frames']['mapped']} frames mapped, lag {snap['lag_s']:.1f} s"
+        text = f"{survey}: {snap['frames']['mapped']} frames mapped, lag {snap['lag_s']:.1f} s"
+        coverage = self._coverage_status
+        if self.survey is not None and coverage and coverage.get("area"):
+            text += f", {100 * coverage['area']['fraction']:.1f} % of the area covered"
+        return text

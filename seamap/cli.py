@@ -16,6 +16,7 @@ from seamap.commands import (
     bench,
     ctl,
     demo,
+    evaluate,
     info,
     replay,
     router,
@@ -27,7 +28,9 @@ from seamap.commands import (
 )
 from seamap.errors import SeamapError
 
-COMMANDS = (info, simulate, replay, run, ctl, shore, router, bench, demo, security, survey)
+COMMANDS = (
+    info, simulate, replay, evaluate, run, ctl, shore, router, bench, demo, security, survey,
+)  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
