@@ -78,20 +78,20 @@ def summary(runs: list[dict[str, Any]], seeds: Sequence[int]) -> str:
         "",
     ]
     rows = []
-    for name, theirs in paper.TABLE_I.items():
+    for name, theirs_i in paper.TABLE_I.items():
         cells = [
             _cell([r["table_i"][name][k] for r in runs], t)
-            for k, t in zip([*METRIC_KEYS, "similarity"], theirs, strict=True)
+            for k, t in zip([*METRIC_KEYS, "similarity"], theirs_i, strict=True)
         ]
         rows.append([name, *cells])
     out += _table(["configuration", "Ent.", "Var.", "RMS", "Ten.", "VoL", "SS"], rows)
 
     out += ["## Table II: relative-pose consistency (m)", ""]
     rows = []
-    for method, theirs in paper.TABLE_II.items():
+    for method, theirs_ii in paper.TABLE_II.items():
         name = BASELINE_NAMES.get(method) or MODE_NAMES[method]
         cells = []
-        for ref, (mae, rmse) in (("fmt-only", theirs[:2]), ("gps-only", theirs[2:])):
+        for ref, (mae, rmse) in (("fmt-only", theirs_ii[:2]), ("gps-only", theirs_ii[2:])):
             got = [r["table_ii"]["rows"][method].get(f"vs_{ref}") for r in runs]
             cells += [
                 _cell([g["mae_m"] if g else None for g in got], mae),
@@ -143,9 +143,9 @@ def summary(runs: list[dict[str, Any]], seeds: Sequence[int]) -> str:
 
     out += ["## Table V: blending", ""]
     rows = []
-    for method, theirs in paper.TABLE_V.items():
+    for method, theirs_v in paper.TABLE_V.items():
         cells = [_cell([r["table_v"][method][k] for r in runs], t)
-                 for k, t in zip(METRIC_KEYS, theirs, strict=True)]  # fmt: skip
+                 for k, t in zip(METRIC_KEYS, theirs_v, strict=True)]  # fmt: skip
         rows.append([BLENDING_NAMES[method], *cells])
     out += _table(["method", "Ent.", "Var.", "RMS", "Ten.", "VoL"], rows)
     return "\n".join(out)

@@ -6,7 +6,7 @@ averaged over 15 trials. Image metrics are on intensities in [0, 1].
 
 from __future__ import annotations
 
-TABLE_I = {
+TABLE_I: dict[str, tuple[float, ...]] = {
     # configuration: (Ent., Var., RMS, Ten., VoL, SS)
     "raw": (0.905, 0.036, 0.189, 0.333, 0.687, 0.184),
     "eq": (0.921, 0.035, 0.187, 0.358, 0.743, 0.178),
@@ -19,7 +19,7 @@ TABLE_I = {
     "eq+clahe+blur": (0.941, 0.044, 0.210, 0.308, 0.154, 0.178),
 }
 
-TABLE_II = {
+TABLE_II: dict[str, tuple[float | None, ...]] = {
     # method: (MAE vs FMT-only, RMSE vs FMT-only, MAE vs gps-only, RMSE vs gps-only), m
     "orb": (0.316, 1.173, 0.304, 1.161),
     "sift": (1.058, 2.807, 1.048, 2.800),
@@ -29,14 +29,14 @@ TABLE_II = {
     "single-stage": (0.005, 0.006, 0.038, 0.062),
 }
 
-TABLE_III = {
+TABLE_III: dict[str, tuple[float, ...]] = {
     # mode: (MAE, RMSE) of the quadrat spacing, m
     "fmt-only": (0.189, 0.221),
     "single-stage": (0.173, 0.200),
     "two-stage": (0.176, 0.207),
 }
 
-TABLE_IV = {
+TABLE_IV: dict[float, tuple[float, ...]] = {
     # lambda: (MAE, RMSE) of the quadrat spacing, m (alpha = 1/225)
     1e2: (0.476, 0.606),
     1e3: (0.429, 0.503),
@@ -45,7 +45,7 @@ TABLE_IV = {
     1e6: (0.225, 0.262),
 }
 
-TABLE_V = {
+TABLE_V: dict[str, tuple[float, ...]] = {
     # blending: (Ent., Var., RMS, Ten., VoL)
     "average": (0.619, 0.036, 0.189, 0.042, 0.039),
     "hurtos": (0.634, 0.035, 0.186, 0.047, 0.047),

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from mapping.baselines import REGISTRATION_BASELINES
 
+from mapping.baselines import REGISTRATION_BASELINES
 from mapping.fmt import FmtRegistrar, RelativePose
 from mapping.frames import LocalRegistration, SonarMount, compose, relative_pose
 from mapping.geo import LocalFrame
@@ -150,6 +150,7 @@ def pairwise_steps(
             index, image, prepared = earlier
             for method in methods:
                 started = time.perf_counter()
+                relative: RelativePose | None
                 if method == "fmt":
                     relative = fmt.register(prepared, fmt.prepare(frame.coarse)).relative
                     seconds = time.perf_counter() - started

@@ -58,9 +58,9 @@ def markdown(tables: dict[str, Any]) -> str:
     header = ["configuration", "Ent.", "Var.", "RMS", "Ten.", "VoL", "SS", "frames"]
     rows = []
     for name, row in tables["table_i"].items():
-        theirs = paper.TABLE_I.get(name, (None,) * 6)
+        theirs_i: Sequence[float | None] = paper.TABLE_I.get(name, (None,) * 6)
         values = [row[k] for k in METRIC_KEYS] + [row["similarity"]]
-        rows.append([name, *(_pair(v, t) for v, t in zip(values, theirs, strict=True)),
+        rows.append([name, *(_pair(v, t) for v, t in zip(values, theirs_i, strict=True)),
                      _n(int(row["frames"]))])  # fmt: skip
     out += _table(header, rows)
 
@@ -71,13 +71,13 @@ def markdown(tables: dict[str, Any]) -> str:
     header = ["method", "vs FMT-only MAE", "RMSE", "vs gps-only MAE", "RMSE", "pairs", "failed"]
     rows = []
     for method, row in t2["rows"].items():
-        theirs = paper.TABLE_II.get(method, (None,) * 4)
+        theirs_ii: Sequence[float | None] = paper.TABLE_II.get(method, (None,) * 4)
         fmt, gps = row.get("vs_fmt-only", {}), row.get("vs_gps-only", {})
         name = BASELINE_NAMES.get(method) or MODE_NAMES.get(method, method)
         rows.append([
             name,
-            _pair(fmt.get("mae_m"), theirs[0]), _pair(fmt.get("rmse_m"), theirs[1]),
-            _pair(gps.get("mae_m"), theirs[2]), _pair(gps.get("rmse_m"), theirs[3]),
+            _pair(fmt.get("mae_m"), theirs_ii[0]), _pair(fmt.get("rmse_m"), theirs_ii[1]),
+            _pair(gps.get("mae_m"), theirs_ii[2]), _pair(gps.get("rmse_m"), theirs_ii[3]),
             _n(max(fmt.get("pairs", 0), gps.get("pairs", 0))), _n(row.get("failed")),
         ])  # fmt: skip
     out += _table(header, rows)
@@ -103,11 +103,11 @@ def markdown(tables: dict[str, Any]) -> str:
     out += ["## Table III: quadrat spacing (m)", ""]
     rows = []
     for mode, spacing in tables["table_iii"].items():
-        theirs = paper.TABLE_III.get(mode, (None, None))
+        theirs_iii: Sequence[float | None] = paper.TABLE_III.get(mode, (None, None))
         spacing = spacing or {}
         located = _n(spacing.get("located"), 0)
-        rows.append([MODE_NAMES[mode], _pair(spacing.get("mae"), theirs[0]),
-                     _pair(spacing.get("rmse"), theirs[1]), located])  # fmt: skip
+        rows.append([MODE_NAMES[mode], _pair(spacing.get("mae"), theirs_iii[0]),
+                     _pair(spacing.get("rmse"), theirs_iii[1]), located])  # fmt: skip
     if all(v is None for v in tables["table_iii"].values()):
         out += ["No quadrats known (give `--truth` or `--quadrats`).", ""]
     else:
@@ -117,10 +117,10 @@ def markdown(tables: dict[str, Any]) -> str:
     out += [f"## Table IV: lambda (alpha = 1/{1 / t4['alpha']:.0f})", ""]
     rows = []
     for lam, row in t4["rows"].items():
-        theirs = paper.TABLE_IV.get(float(lam), (None, None))
+        theirs_iv: Sequence[float | None] = paper.TABLE_IV.get(float(lam), (None, None))
         spacing = row.get("spacing") or {}
         rows.append([
-            lam, _pair(spacing.get("mae"), theirs[0]), _pair(spacing.get("rmse"), theirs[1]),
+            lam, _pair(spacing.get("mae"), theirs_iv[0]), _pair(spacing.get("rmse"), theirs_iv[1]),
             _n(row["vs_fmt-only"]["rmse_m"]), _n(row["vs_gps-only"]["rmse_m"]),
             _n(row.get("ate_aligned_m")),
         ])  # fmt: skip
@@ -130,9 +130,9 @@ def markdown(tables: dict[str, Any]) -> str:
     out += ["## Table V: blending", ""]
     rows = []
     for method, row in tables["table_v"].items():
-        theirs = paper.TABLE_V.get(method, (None,) * 5)
+        theirs_v: Sequence[float | None] = paper.TABLE_V.get(method, (None,) * 5)
         rows.append([BLENDING_NAMES[method],
-                     *(_pair(row[k], t) for k, t in zip(METRIC_KEYS, theirs, strict=True)),
+                     *(_pair(row[k], t) for k, t in zip(METRIC_KEYS, theirs_v, strict=True)),
                      _n(row["seconds"], 1)])  # fmt: skip
     out += _table(["method", "Ent.", "Var.", "RMS", "Ten.", "VoL", "render (s)"], rows)
 

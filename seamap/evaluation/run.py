@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mapping.baselines import REGISTRATION_BASELINES
 
+from mapping.baselines import REGISTRATION_BASELINES
 from mapping.frames import LocalRegistration
 from mapping.metrics import Quadrat
 from seamap.config import SiteConfig, load_config
@@ -82,12 +82,12 @@ def resolve_inputs(
         if not sonar or not nav:
             raise SeamapError("give a survey folder, or --sonar and --nav")
         name = sonar[0].stem
-    for path in [*sonar, *nav]:
-        if not path.is_file():
-            raise SeamapError(f"{path}: no such file")
-    for path in (truth, quadrats):
-        if path is not None and not path.is_file():
-            raise SeamapError(f"{path}: no such file")
+    for log in [*sonar, *nav]:
+        if not log.is_file():
+            raise SeamapError(f"{log}: no such file")
+    for given in (truth, quadrats):
+        if given is not None and not given.is_file():
+            raise SeamapError(f"{given}: no such file")
     if truth is not None:
         from tools.evaluate import load_truth
 
