@@ -114,6 +114,70 @@ def offer_warped(
 
 
 @_compiled
+def offer_warped_keeping_all(
+    score: U16,
+    intensity: U8,
+    frame: U16,
+    rest_weight: F32,
+    rest_value: F32,
+    r0: int,
+    c0: int,
+    warped: F32,
+    tag: int,
+    movable: Mask,
+) -> Mask:
+    """``offer_warped`` for a blend over every frame (Hurtós's weighted mean): a
+    candidate the stack has no room for (the offered one when it is the weakest, else the
+    weakest it pushes out) is not lost but added to the pixel's sums outside the stack,
+    ``rest_weight`` += w and ``rest_value`` += w I ((rows, cols) each; w and I as the
+    slots quantise them), so the stack and the sums together hold every frame. A
+    candidate of a frame that may still be taken out (``movable[tag]``, over the 65536
+    tags) is dropped instead, as ``offer_warped`` drops it: the sums cannot give it back,
+    and left in them it would stay where the frame no longer is. Returns the pixels whose
+    blend changed."""
+    n = score.shape[2]
+    rows, cols = warped.shape[0], warped.shape[1]
+    changed = np.zeros((rows, cols), np.bool_)
+    inv_score = np.float32(1.0 / 65535.0)
+    inv_value = np.float32(1.0 / 255.0)
+    for i in range(rows):
+        r = r0 + i
+        for j in range(cols):
+            s = warped[i, j, 1]
+            if not (warped[i, j, 2] >= INSIDE and s > np.float32(0.0)):
+                continue
+            q = min(max(np.rint(s * np.float32(65535.0)), np.float32(0.0)), np.float32(65535.0))
+            new_score = max(np.uint16(q), np.uint16(1))
+            g = min(
+                max(np.rint(warped[i, j, 0] * np.float32(255.0)), np.float32(0.0)),
+                np.float32(255.0),
+            )
+            c = c0 + j
+            slots = score[r, c]
+            weakest = slots[0]
+            slot = 0
+            for k in range(1, n):
+                if slots[k] < weakest:
+                    weakest = slots[k]
+                    slot = k
+            if new_score > weakest:
+                if weakest > 0 and not movable[frame[r, c, slot]]:
+                    w = np.float32(weakest) * inv_score
+                    rest_weight[r, c] += w
+                    rest_value[r, c] += w * (np.float32(intensity[r, c, slot]) * inv_value)
+                slots[slot] = new_score
+                intensity[r, c, slot] = np.uint8(g)
+                frame[r, c, slot] = tag
+                changed[i, j] = True
+            elif not movable[tag]:
+                w = np.float32(new_score) * inv_score
+                rest_weight[r, c] += w
+                rest_value[r, c] += w * (g * inv_value)
+                changed[i, j] = True
+    return changed
+
+
+@_compiled
 def take_out(score: U16, frame: U16, r0: int, r1: int, c0: int, c1: int, tag: int) -> Mask:
     """Empty the slots ``tag`` holds in the box rows r0:r1, cols c0:c1 (score 0, no
     frame); returns the pixels it held (to render again).
@@ -367,6 +431,10 @@ def warm() -> None:
     warped = np.ones((2, 2, 3), np.float32)
     any_valid(warped)
     offer_warped(score, intensity, frame, 0, 0, warped, 1)
+    rest = np.zeros((2, 2), np.float32)
+    offer_warped_keeping_all(
+        score, intensity, frame, rest, rest.copy(), 0, 0, warped, 1, np.zeros(65536, np.bool_)
+    )
     points = np.zeros(2, np.float64)
     tiles_near(points, points, 1.0, 0.1)
     # As the tiles give them: np.nonzero's views (strided, not contiguous).

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mapping.blend import BlendParams, FeatureScorer
+from mapping.blend import BlendParams, make_scorer
 from mapping.ekf import EkfParams
 from mapping.fmt import FmtParams, RelativePose
 from mapping.frames import (
@@ -180,7 +180,7 @@ def blend_frames(
     ``attitude`` the roll and pitch of each ping by its stamp."""
     clock = clock or _Clock()
     mosaic = TileStore(TileGrid(params.mosaic_res_m, params.tile_px), params.blend, spill)
-    scorer = FeatureScorer(params.blend)
+    scorer = make_scorer(params.blend)
     preprocessing = LocalRegistration(
         mount, params.preprocess, params.fmt, params.registration, attitude
     )
@@ -196,7 +196,9 @@ def blend_frames(
         t1 = clock.add("preprocess", t0)
         preprocessor = preprocessing.preprocessor
         assert preprocessor is not None and preprocessor.grid is not None
-        score = scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
+        score = scorer(
+            sonar_frame.image, sonar_frame.mask, sonar_frame.weight, sonar_frame.fan_weight
+        )
         east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
         pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
         mosaic.insert(

@@ -7,8 +7,9 @@
 4. Optional Gaussian blur (k = 3, sigma from the kernel size).
 5. Polar to Cartesian with the real bearing table and slant-to-ground range through the
    cone beam model, each ping at its own roll, pitch and altitude when given
-   (``mapping.polar``), a fan mask that also drops the unlit near field, and a
-   Hamming-tapered edge weight (``mapping.fmt.hamming_taper``).
+   (``mapping.polar``), a fan mask that also drops the unlit near field, a
+   Hamming-tapered edge weight (``mapping.fmt.hamming_taper``) and each pixel's weight
+   by its place in the fan (``mapping.blend.hurtos_weight``, for Hurtós's blending).
 
 Intensities come out as float32 in [0, 1] on a ``SonarGrid``; the mask marks valid pixels.
 """
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from mapping.blend import hurtos_weight
 from mapping.fmt import SonarGrid, hamming_taper
 from mapping.polar import (
     Attitude,
@@ -68,12 +70,15 @@ class SonarFrame:
     few centimetres off that region, so ``mask`` varies per ping: it is the fixed mask
     less the pixels this ping's tilted fan does not reach (those are 0 in ``image``,
     ``weight`` and ``coarse``). What the ping covers beyond the fixed mask is not kept.
-    ``weight`` is the fixed mask's taper cut to ``mask``."""
+    ``weight`` is the fixed mask's taper cut to ``mask``; ``fan_weight`` likewise the
+    level fan's Hurtós weight (``mapping.blend.hurtos_weight``: 1 at the fan's centre, 0
+    at its edges)."""
 
     image: npt.NDArray[np.float32]
     mask: npt.NDArray[np.bool_]
     weight: npt.NDArray[np.float32]
     coarse: npt.NDArray[np.float32]
+    fan_weight: npt.NDArray[np.float32]
 
 
 def lit_min_range(
@@ -138,6 +143,7 @@ class Preprocessor:
         self.projection = PingProjection(self.fan, self.grid, self.min_range_m)
         self.tables: CartesianTables = self.projection.level
         self.weight = hamming_taper(self.tables.mask, p.taper_px)
+        self.fan_weight = self._fan_weight(self.tables)
         if p.registration_res_m == p.res_m:
             self.registration_grid, self.registration_projection = self.grid, self.projection
         else:
@@ -146,10 +152,9 @@ class Preprocessor:
                 self.fan, self.registration_grid, self.min_range_m
             )
         self.registration_tables: CartesianTables = self.registration_projection.level
-        self._ping_weight: tuple[CartesianTables, npt.NDArray[np.float32]] = (
-            self.tables,
-            self.weight,
-        )
+        self._ping_weight: tuple[
+            CartesianTables, npt.NDArray[np.float32], npt.NDArray[np.float32]
+        ] = (self.tables, self.weight, self.fan_weight)
         first_lit = int(self.min_range_m / self.fan.range_resolution_m)
         self.first_lit_row = min(max(first_lit, 0), self.fan.n_ranges - 1)
         self._clahe = cv2.createCLAHE(
@@ -203,10 +208,31 @@ class Preprocessor:
             if registration_tables is tables
             else to_cartesian(polar, registration_tables) * scale
         )
-        return SonarFrame(cart, tables.mask, self._weight(tables), coarse)
+        weight, fan_weight = self._weights(tables)
+        return SonarFrame(cart, tables.mask, weight, coarse, fan_weight)
 
-    def _weight(self, tables: CartesianTables) -> npt.NDArray[np.float32]:
+    def _weights(
+        self, tables: CartesianTables
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """The level fan's taper and Hurtós weight cut to a ping's mask."""
         if self._ping_weight[0] is not tables:
-            weight = np.where(tables.mask, self.weight, np.float32(0.0))
-            self._ping_weight = (tables, weight)
-        return self._ping_weight[1]
+            zero = np.float32(0.0)
+            self._ping_weight = (
+                tables,
+                np.where(tables.mask, self.weight, zero),
+                np.where(tables.mask, self.fan_weight, zero),
+            )
+        return self._ping_weight[1], self._ping_weight[2]
+
+    def _fan_weight(self, tables: CartesianTables) -> npt.NDArray[np.float32]:
+        """Each pixel's Hurtós weight by its beam bearing and slant range in the level
+        fan, whose range band runs from the first lit range to the last bin's far edge."""
+        fan = self.fan
+        bearings = np.asarray(fan.bearings_rad)
+        bearing = np.interp(tables.map_beam, np.arange(bearings.size), bearings)
+        slant = (tables.map_range.astype(np.float64) + 0.5) * fan.range_resolution_m
+        near = max(self.min_range_m, 0.5 * fan.range_resolution_m)
+        far = (fan.n_ranges - 0.5) * fan.range_resolution_m
+        return hurtos_weight(
+            bearing, slant, tables.mask, (float(bearings[0]), float(bearings[-1])), (near, far)
+        )

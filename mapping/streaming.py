@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from mapping.blend import FeatureScorer
+from mapping.blend import make_scorer
 from mapping.closures import world_rotation
 from mapping.ekf import PSI, ImuInput, NavFilter, level_imu
 from mapping.fmt import SonarGrid
@@ -267,7 +267,7 @@ class StreamingEngine:
             p.registration,
             self._attitude_at if p.project_attitude else None,
         )
-        self.scorer = FeatureScorer(p.blend)
+        self.scorer = make_scorer(p.blend)
         self.tiles = TileStore(
             TileGrid(p.mosaic_res_m, p.tile_px),
             p.blend,
@@ -529,7 +529,9 @@ class StreamingEngine:
         # Blend at once at the chained pose.
         grid = self.local.preprocessor.grid if self.local.preprocessor else None
         assert grid is not None
-        score = self.scorer(sonar_frame.image, sonar_frame.mask, sonar_frame.weight)
+        score = self.scorer(
+            sonar_frame.image, sonar_frame.mask, sonar_frame.weight, sonar_frame.fan_weight
+        )
         sonar = self.mount.sonar_pose(pose)
         layers = frame_layers(sonar_frame.image, score, sonar_frame.mask)
         touched = self._insert(index, layers, sonar_frame.mask, grid, sonar, ping.time)

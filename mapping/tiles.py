@@ -6,7 +6,16 @@ that covered it (all the paper's robust blending ever uses), each tagged with th
 that gave it, so a frame whose pose moves can be taken out and put back where it now
 belongs. Intensities are stored as uint8, scores as uint16 (score x 65535; 0 = empty
 slot) and tags as uint16 (frame index modulo 65535: unique among the frames that can
-still move): 80 bytes a pixel, 5.2 MB for a 256 x 256 tile.
+still move): 80 bytes a pixel, 5.2 MB for a 256 x 256 tile. How a pixel's candidates
+make its value is ``BlendParams.method``'s (``mapping.blend``): the robust blend, the
+plain mean of the candidates ("average"), or of those Su's threshold keeps ("su").
+
+Hurtós's blend ("hurtos") is a weighted mean over every frame, not over N of them: a
+tile then also keeps, per pixel, the sums of w and w I of the candidates the full stack
+had no room for (two float32, 8 bytes more a pixel), so stack and sums together hold
+every frame however many pass, still in bounded memory and in any grouping. Only frames
+that can no longer move go into the sums (they cannot be taken out again); a movable
+frame's candidate without room is dropped, as for the other methods.
 
 A tile the boat has left behind (no frame for ``evict_after_s`` of survey time) may be
 handed to a ``TileSpill`` — on disk in the daemon, in memory in tests — and leave
@@ -33,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping import kernels
-from mapping.blend import BlendParams
+from mapping.blend import BlendParams, su_blend, weighted_mean_blend
 from mapping.fmt import SonarGrid
 from mapping.mosaic import (
     SonarPose,
@@ -96,6 +105,11 @@ class Tile:
     intensity: npt.NDArray[np.uint8]
     score: npt.NDArray[np.uint16]
     frame: npt.NDArray[np.uint16]
+    rest_weight: FloatImage | None = None
+    """Hurtós's blend only (else None): per pixel, the summed weight of the candidates
+    kept outside the stack (see the module docstring)."""
+    rest_value: FloatImage | None = None
+    """... and their summed weighted intensity (w I, I in 0..1)."""
     version: int = 0
     last_touch: float = 0.0
     """Survey time of the latest frame offered to the tile."""
@@ -111,12 +125,15 @@ class Tile:
     """Where each frame that may still move put its candidates (row0, row1, col0, col1)."""
 
     @classmethod
-    def empty(cls, key: TileKey, size: int, n: int) -> Tile:
+    def empty(cls, key: TileKey, size: int, n: int, keep_all: bool = False) -> Tile:
+        """An empty tile; ``keep_all``: with the sums outside the stack (Hurtós)."""
         return cls(
             key,
             np.zeros((size, size, n), np.uint8),
             np.zeros((size, size, n), np.uint16),
             np.full((size, size, n), NO_FRAME, np.uint16),
+            np.zeros((size, size), np.float32) if keep_all else None,
+            np.zeros((size, size), np.float32) if keep_all else None,
         )
 
     @property
@@ -142,6 +159,8 @@ class Tile:
     @property
     def nbytes(self) -> int:
         extra = 0 if self.rendered is None else self.rendered.nbytes
+        for rest in (self.rest_weight, self.rest_value):
+            extra += 0 if rest is None else rest.nbytes
         return self.intensity.nbytes + self.score.nbytes + self.frame.nbytes + extra
 
 
@@ -185,6 +204,10 @@ class TileStore:
         self._fan_samples: dict[int, tuple[npt.NDArray[np.bool_], FanPoints, float]] = {}
         self.movable: set[int] = set()
         """Frames that may still be taken out (inserted and not settled)."""
+        self.keep_all = self.params.method == "hurtos"
+        """Every frame counts (Hurtós): tiles keep the sums outside the stacks."""
+        self._movable_tags = np.zeros(0x10000, bool)
+        """``movable`` by tag, for the compiled offering loop (Hurtós)."""
         # s^gamma for every quantised score.
         levels = np.arange(65536, dtype=np.float64) / 65535.0
         self._weight_lut = (levels**self.params.gamma).astype(np.float32)
@@ -198,7 +221,7 @@ class TileStore:
             return tile
         stored = self.spill.load(key)
         if stored is None:
-            tile = Tile.empty(key, self.grid.tile_px, self.params.top_n)
+            tile = Tile.empty(key, self.grid.tile_px, self.params.top_n, self.keep_all)
         else:
             tile = Tile(
                 key,
@@ -207,6 +230,9 @@ class TileStore:
                 np.asarray(stored["frame"], np.uint16),
                 rendered=np.asarray(stored["rendered"], np.uint8),
             )
+            if self.keep_all:
+                tile.rest_weight = np.asarray(stored["rest_weight"], np.float32)
+                tile.rest_value = np.asarray(stored["rest_value"], np.float32)
             boxes = stored.get("boxes")
             if boxes is not None:
                 tile.boxes = {
@@ -251,6 +277,9 @@ class TileStore:
                 "frame": tile.frame,
                 "rendered": tile.rendered,
             }
+            if tile.rest_weight is not None and tile.rest_value is not None:
+                arrays["rest_weight"] = tile.rest_weight
+                arrays["rest_value"] = tile.rest_value
             moving = [(k, *box) for k, box in tile.boxes.items() if k in self.movable]
             if moving:
                 # Frames that may still move (the live re-solve) keep where they went.
@@ -332,6 +361,7 @@ class TileStore:
         tag = np.uint16(frame_index % 0xFFFF)
         if movable:
             self.movable.add(frame_index)
+            self._movable_tags[tag] = True
         touched = []
         for key, box in self._boxes(grid, mask, pose).items():
             warped = warp_to_tile(layers, grid, pose, self.grid, key, box)
@@ -342,9 +372,15 @@ class TileStore:
             # Only pixels wholly inside the fan (interpolation across the fan's edge would
             # mix in the zeros outside it); each improved pixel's candidate goes into its
             # first slot holding the weakest one.
-            better = kernels.offer_warped(
-                tile.score, tile.intensity, tile.frame, r0, c0, warped, int(tag)
-            )
+            if tile.rest_weight is not None and tile.rest_value is not None:
+                better = kernels.offer_warped_keeping_all(
+                    tile.score, tile.intensity, tile.frame, tile.rest_weight,
+                    tile.rest_value, r0, c0, warped, int(tag), self._movable_tags,
+                )  # fmt: skip
+            else:
+                better = kernels.offer_warped(
+                    tile.score, tile.intensity, tile.frame, r0, c0, warped, int(tag)
+                )
             tile.mark(box, better, deferred)
             if movable:
                 tile.boxes[frame_index] = box
@@ -370,6 +406,7 @@ class TileStore:
         """A frame will not move again: forget where it went (in a spilled tile, when it
         is next loaded)."""
         self.movable.discard(frame_index)
+        self._movable_tags[frame_index % 0xFFFF] = False
         for key in keys:
             tile = self.active.get(key)
             if tile is not None:
@@ -391,7 +428,10 @@ class TileStore:
         deferred = deferred and not new_only
         if tile.rendered is None:
             tile.rendered = np.zeros((size, size), np.uint8)
-            rows, cols = np.nonzero((tile.score > 0).any(axis=2))
+            held = (tile.score > 0).any(axis=2)
+            if tile.rest_weight is not None:
+                held |= tile.rest_weight > 0
+            rows, cols = np.nonzero(held)
             tile.deferred = None
         elif tile.changed is not None or (deferred and tile.deferred is not None):
             todo = tile.changed if tile.changed is not None else np.zeros((size, size), bool)
@@ -405,29 +445,43 @@ class TileStore:
         else:
             rows = cols = np.zeros(0, np.intp)
         if rows.size:
-            if self.params.method == "average":
-                # The candidate lists (pixels, N) of just the pixels to render.
-                intensity = tile.intensity[rows, cols].astype(np.float32) * np.float32(1 / 255)
-                score = tile.score[rows, cols].astype(np.float32) * np.float32(1 / 65535)
-                present = score > 0
-                count = present.sum(axis=-1)
-                covered = count > 0
-                blended = np.where(
-                    covered, (intensity * present).sum(axis=-1) / np.maximum(count, 1), 0.0
-                ).astype(np.float32)
-                values = np.clip(np.rint(blended * 254.0) + 1.0, 1, 255).astype(np.uint8)
-                values[~covered] = 0
-            else:
-                p = self.params
-                values, _ = kernels.blend(
-                    tile.intensity, tile.score, rows, cols, self._weight_lut, p.rho, p.eta,
-                    p.top_n,
-                )  # fmt: skip
-            tile.rendered[rows, cols] = values
+            tile.rendered[rows, cols] = self._blend(tile, rows, cols)
         tile.changed = keep_changed if keep_changed is not None and keep_changed.any() else None
         tile.version += 1
         self.versions[key] = tile.version
         return TileImage(key, tile.rendered.copy(), tile.version)
+
+    def _blend(
+        self, tile: Tile, rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp]
+    ) -> npt.NDArray[np.uint8]:
+        """Grey values (1..255, 0 = no data) of the tile's pixels (rows[i], cols[i]) by
+        ``BlendParams.method``."""
+        p = self.params
+        if p.method == "robust":
+            values, _ = kernels.blend(
+                tile.intensity, tile.score, rows, cols, self._weight_lut, p.rho, p.eta, p.top_n
+            )
+            return values
+        # The candidate lists (pixels, N) of just the pixels to render.
+        intensity = tile.intensity[rows, cols].astype(np.float32) * np.float32(1 / 255)
+        score = tile.score[rows, cols].astype(np.float32) * np.float32(1 / 65535)
+        if p.method == "average":
+            present = score > 0
+            count = present.sum(axis=-1)
+            covered = count > 0
+            blended = np.where(
+                covered, (intensity * present).sum(axis=-1) / np.maximum(count, 1), 0.0
+            ).astype(np.float32)
+        elif p.method == "su":
+            blended, covered = su_blend(intensity, score, p)
+        else:  # "hurtos": the score is the weight
+            rest_weight = rest_value = None
+            if tile.rest_weight is not None and tile.rest_value is not None:
+                rest_weight, rest_value = tile.rest_weight[rows, cols], tile.rest_value[rows, cols]
+            blended, covered = weighted_mean_blend(intensity, score, rest_weight, rest_value)
+        values = np.clip(np.rint(blended * 254.0) + 1.0, 1, 255).astype(np.uint8)
+        values[~covered] = 0
+        return values
 
     def render_dirty(self, new_only: bool = False, deferred: bool = True) -> list[TileImage]:
         """Render every changed tile (``new_only``: only where coverage is new, and only

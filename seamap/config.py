@@ -155,7 +155,11 @@ class MappingConfig:
     sonar_latency_s: float = 0.05
     """Time from a ping's acquisition to its receive stamp (s)."""
     blending: str = "robust"
-    """"robust" (the paper's variance-based blending) or "average"."""
+    """How overlapping frames make a mosaic pixel: "robust" (the paper's variance-based
+    blending, Eq. 8-11), or one of the baselines it is compared with (Table V):
+    "average" (plain mean), "hurtos" (Hurtós et al. 2013: every frame weighted by the
+    pixel's place in its fan, most at the fan's centre) or "su" (Su et al. 2024: the
+    variance score over fixed windows of frames, the kept candidates' plain mean)."""
 
 
 @dataclass(frozen=True)
@@ -230,7 +234,7 @@ _CHOICES: dict[tuple[str, str], tuple[Any, ...]] = {
     ("mavlink", "heading_source"): HEADING_SOURCES,
     ("mavlink", "imu_source"): IMU_SOURCES,
     ("zenoh", "mode"): ("peer", "client", "router"),
-    ("mapping", "blending"): ("robust", "average"),
+    ("mapping", "blending"): ("robust", "average", "hurtos", "su"),
     ("daemon", "log_level"): ("debug", "info", "warning", "error"),
     ("sonar", "frequency"): ("low", "high"),
     ("sonar", "ping_rate_hz"): (2, 5, 10, 15, 40),

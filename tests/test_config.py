@@ -104,6 +104,21 @@ def test_wrong_values_are_errors_naming_the_key(tmp_path: Path, text: str, fragm
         load_config(write(tmp_path, text))
 
 
+@pytest.mark.parametrize("method", ["robust", "average", "hurtos", "su"])
+def test_every_blending_method_loads_and_reaches_the_pipeline(tmp_path: Path, method: str) -> None:
+    from seamap.replay import pipeline_params
+
+    config = load_config(write(tmp_path, f'[mapping]\nblending = "{method}"\n'))
+    assert config.mapping.blending == method
+    assert pipeline_params(config).blend.method == method
+
+
+def test_a_wrong_blending_method_names_the_choices(tmp_path: Path) -> None:
+    expected = r"\[mapping\] blending = 'median' is not one of robust, average, hurtos, su$"
+    with pytest.raises(SeamapError, match=expected):
+        load_config(write(tmp_path, '[mapping]\nblending = "median"\n'))
+
+
 @pytest.mark.parametrize(
     ("key", "value", "fragment"),
     [

@@ -160,7 +160,7 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
         "from mapping import kernels\n"
         "loops = (\n"
         "    kernels.any_valid, kernels.offer_warped, kernels.take_out, kernels.blend,\n"
-        "    kernels.tiles_near,\n"
+        "    kernels.tiles_near, kernels.offer_warped_keeping_all,\n"
         ")\n"
         "assert not any(loop.signatures for loop in loops)\n"
         "kernels.warm()\n"
@@ -172,6 +172,9 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
         "keys = store.insert(1, image, score, mask, GRID, pose(0.2, 0.1), time=0.0)\n"
         "store.render_dirty()\n"
         "store.remove(1, keys)\n"
+        "from mapping.blend import BlendParams\n"
+        "store = TileStore(TILES, BlendParams(method='hurtos'))\n"
+        "store.insert(2, image, score, mask, GRID, pose(0.2, 0.1), time=0.0, movable=False)\n"
         "print(warmed, [len(loop.signatures) for loop in loops])\n"
     )
     root = Path(__file__).resolve().parents[2]
@@ -180,7 +183,7 @@ def test_warm_compiles_every_loop_for_the_tiles_types() -> None:
     )
     assert done.returncode == 0, done.stderr
     # One signature each, and the tiles' own calls needed no other.
-    assert done.stdout.strip() == "[1, 1, 1, 1, 1] [1, 1, 1, 1, 1]"
+    assert done.stdout.strip() == "[1, 1, 1, 1, 1, 1] [1, 1, 1, 1, 1, 1]"
 
 
 def test_a_box_the_fan_only_grazes_offers_nothing() -> None:

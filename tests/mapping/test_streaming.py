@@ -4,6 +4,7 @@ versions grow, and a survey-end pass equal to the offline single-stage pipeline.
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 import random
 from collections import defaultdict
@@ -13,14 +14,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from drivers.oculus.logfile import iter_pings
 from mapping.frames import SonarMount
 from mapping.live_resolve import ResolveParams
+from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
+from mapping.tiles import TileStore
 from seamap.config import SiteConfig, load_config
 from seamap.replay import mount_from_config, pipeline_params, read_navigation
 from tools.sim import simulate
@@ -245,3 +249,58 @@ def test_a_re_solve_redraws_over_the_next_frames_and_ends_drawn_where_it_put_the
     assert slower.stats.frames_redrawn < stats.frames_redrawn
     assert slower.stats.redraw_wait_max_s > stats.redraw_wait_max_s
     np.testing.assert_array_equal(np.array(slower.poses), np.array(engine.poses))
+
+
+def mosaic_of(tiles: TileStore) -> npt.NDArray[np.uint8]:
+    image, _ = assemble(tiles.grid, {t.key: t.values for t in tiles.rendered_tiles()})
+    return image
+
+
+@pytest.fixture(scope="module")
+def live_robust(stream: Stream) -> npt.NDArray[np.uint8]:
+    return mosaic_of(stream.run(stream.samples).tiles)
+
+
+@pytest.mark.parametrize("method", ["hurtos", "su"])
+def test_the_live_map_blends_by_the_configured_method(
+    stream: Stream, live_robust: npt.NDArray[np.uint8], method: str
+) -> None:
+    config = replace(stream.config, mapping=replace(stream.config.mapping, blending=method))
+    engine = Stream(stream.samples, config).run(stream.samples)
+    assert engine.params.pipeline.blend.method == method
+    image = mosaic_of(engine.tiles)
+    # The same seabed covered (to a few pixels: where a robust score is 0 nothing is
+    # offered), blended otherwise.
+    assert image.shape == live_robust.shape
+    covered, reference = image > 0, live_robust > 0
+    assert (covered != reference).sum() <= 0.001 * reference.sum()
+    both = covered & reference
+    assert np.abs(image[both].astype(float) - live_robust[both]).mean() > 2.0
+    if method == "hurtos":
+        # Frames the live re-solve may still draw again are all movable: a full stack
+        # drops the weakest of them. Without re-solves frames settle as they leave the
+        # window, and then those a full stack has no room for still count.
+        assert engine.tiles.movable and not any(
+            t.rest_weight is not None and t.rest_weight.any() for t in engine.tiles.active.values()
+        )
+        settled = Stream(stream.samples, config).run(
+            stream.samples, resolve=replace(ResolveParams(), enabled=False)
+        )
+        assert any(
+            t.rest_weight is not None and t.rest_weight.any() for t in settled.tiles.active.values()
+        )
+
+
+def test_the_survey_end_pass_blends_by_the_configured_method(recorded: Recorded) -> None:
+    mosaics = {}
+    for method in ("robust", "average", "hurtos", "su"):
+        params = replace(recorded.params, blend=replace(recorded.params.blend, method=method))
+        result = map_survey(recorded.pings, recorded.nav, recorded.mount, params, Mode.GPS_ONLY)
+        mosaics[method] = mosaic_of(result.mosaic)
+    reference = mosaics["robust"] > 0
+    for method, image in mosaics.items():
+        assert image.shape == mosaics["robust"].shape
+        assert ((image > 0) != reference).sum() <= 0.001 * reference.sum(), method
+    for a, b in itertools.combinations(mosaics, 2):
+        both = (mosaics[a] > 0) & (mosaics[b] > 0)
+        assert np.abs(mosaics[a][both].astype(float) - mosaics[b][both]).mean() > 2.0, (a, b)
