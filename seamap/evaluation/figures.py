@@ -45,7 +45,8 @@ def _draw_quadrats(ax: Axes, quadrats: Sequence[Quadrat]) -> None:
             (q.east + a * half * s + b * half * c, q.north + a * half * c - b * half * s)
             for a, b in ((-1, -1), (-1, 1), (1, 1), (1, -1))
         ]
-        colour = "tab:orange" if q.array == 0 else "gold"
+        # The paper's colours: its aluminium row orange, its PVC row yellow.
+        colour = "tab:orange" if q.row == 0 else "gold"
         ax.add_patch(PolygonPatch(corners, closed=True, fill=False, lw=0.8, ec=colour))
 
 
@@ -57,6 +58,9 @@ def mosaics_figure(
     north = max(p[3] for p in panels)
     east = max(p[2] + p[1].shape[1] * p[4] for p in panels)
     south = min(p[3] - p[1].shape[0] * p[4] for p in panels)
+    for q in quadrats:  # the boxes in view too: a mosaic may miss them
+        west, east = min(west, q.east - q.side_m), max(east, q.east + q.side_m)
+        south, north = min(south, q.north - q.side_m), max(north, q.north + q.side_m)
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.6), squeeze=False)
     for ax, (name, image, w, n, res) in zip(axes[0], panels, strict=True):
         shown = np.ma.masked_equal(image, 0)
