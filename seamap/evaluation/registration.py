@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.baselines import REGISTRATION_BASELINES
-from mapping.fmt import FmtRegistrar, RelativePose
+from mapping.fmt import FmtParams, FmtRegistrar, RelativePose
 from mapping.frames import LocalRegistration, SonarMount, compose, relative_pose
 from mapping.geo import LocalFrame
 from mapping.preprocess import PreprocessParams
@@ -123,14 +123,17 @@ def pairwise_steps(
     pairs: list[tuple[float, float]],
     methods: tuple[str, ...] = ("fmt", *REGISTRATION_BASELINES),
     preprocess: PreprocessParams | None = None,
+    fmt_params: FmtParams | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[str, PairwiseSteps]:
     """Register each pair (consecutive pings by time) with each method on the frames the
-    pipeline registers (``SonarFrame.coarse``, its grid and fan); the steps in the vehicle
-    frame (the mount's lever arm and yaw taken out)."""
+    pipeline registers (``SonarFrame.coarse``, its grid and fan, the pipeline's
+    ``preprocess`` and ``fmt_params``; level: the pairs' roll and pitch are small and
+    alike for every method); the steps in the vehicle frame (the mount's lever arm and
+    yaw taken out)."""
     wanted = {round(a, 4): k for k, (a, _) in enumerate(pairs)}
     out = {m: PairwiseSteps(m, np.full((len(pairs), 3), np.nan)) for m in methods}
-    local = LocalRegistration(mount, preprocess or PreprocessParams())
+    local = LocalRegistration(mount, preprocess or PreprocessParams(), fmt_params or FmtParams())
     registrars: dict[str, Any] = {}
     geometry: object = None
     earlier: tuple[int, Any, Any] | None = None  # (pair index, coarse image, FMT prepared)

@@ -216,7 +216,10 @@ def _table_ii(
         for mode, run in runs.items()
     }
     steps = {mode: registration.trajectory_steps(t, pairs) for mode, t in trajectories.items()}
-    pairwise = registration.pairwise_steps(pings, mount, pairs, preprocess=None)
+    params = pipeline_params(inputs.config)
+    pairwise = registration.pairwise_steps(
+        pings, mount, pairs, preprocess=params.preprocess, fmt_params=params.fmt
+    )
     references = {"fmt-only": steps["fmt-only"], "gps-only": steps["gps-only"]}
     rows: dict[str, Any] = {}
     for method, found in pairwise.items():
