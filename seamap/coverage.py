@@ -187,33 +187,50 @@ def coverage_message(
     if area is not None:
         found = area_coverage(grid, params.min_passes, frame, area, min_gap_m2)
         report = _area_report(found, min_gap_m2)
-        area_part = {
-            "area_m2": report["area_m2"],
-            "covered_m2": report["covered_m2"],
-            "fraction": report["covered_fraction"],
-            "gaps": report["gaps"],
-            "gaps_m2": report["gaps_m2"],
-            "min_gap_m2": min_gap_m2,
-        }
+        area_part = _area_message(report)
         gaps = gaps_geojson(found.gaps, frame)
     rows, cols = grid.passes.shape
-    summary = {
-        "survey": survey,
-        "time": round(time.time(), 3),
-        "final": final,
-        "version": version,
-        "epsg": frame.epsg,
-        "cell_m": grid.cell_m,
-        "min_passes": params.min_passes,
-        "seen_m2": round(seen * grid.cell_m**2, 3),
-        "covered_m2": round(grid.covered_m2(params.min_passes), 3),
-        "area": area_part,
-        "gaps": gaps,
-    }
+    summary = _summary(
+        survey, final, version, frame.epsg, grid.cell_m, params.min_passes,
+        round(seen * grid.cell_m**2, 3), round(grid.covered_m2(params.min_passes), 3),
+        area_part, gaps,
+    )  # fmt: skip
     info = CoverageInfo(
         frame.epsg, grid.cell_m, grid.west_m, grid.north_m, max(cols, 1), max(rows, 1), version
     )
     return CoverageMessage(summary, png_bytes(coverage_image(grid.passes, params.min_passes)), info)
+
+
+def _area_message(area: dict[str, Any]) -> dict[str, Any]:
+    """The summary's ``area`` from report.json's ``coverage.area``."""
+    return {
+        "area_m2": area["area_m2"],
+        "covered_m2": area["covered_m2"],
+        "fraction": area["covered_fraction"],
+        "gaps": area["gaps"],
+        "gaps_m2": area["gaps_m2"],
+        "min_gap_m2": area["min_gap_m2"],
+    }
+
+
+def _summary(
+    survey: str, final: bool, version: int, epsg: int, cell_m: float, min_passes: int,
+    seen_m2: float, covered_m2: float, area: dict[str, Any] | None, gaps: dict[str, Any],
+) -> dict[str, Any]:  # fmt: skip
+    """A coverage summary (``seamap.zenoh_io.parse_coverage_summary``'s keys)."""
+    return {
+        "survey": survey,
+        "time": round(time.time(), 3),
+        "final": final,
+        "version": version,
+        "epsg": epsg,
+        "cell_m": cell_m,
+        "min_passes": min_passes,
+        "seen_m2": seen_m2,
+        "covered_m2": covered_m2,
+        "area": area,
+        "gaps": gaps,
+    }
 
 
 def final_message(survey_dir: Path, survey: str, version: int) -> CoverageMessage | None:
@@ -229,28 +246,11 @@ def final_message(survey_dir: Path, survey: str, version: int) -> CoverageMessag
         if area is not None:
             gaps = json.loads((survey_dir / GAPS_GEOJSON).read_text(encoding="utf-8"))
         rows, cols = raster.meets_bar.shape
-        summary = {
-            "survey": survey,
-            "time": round(time.time(), 3),
-            "final": True,
-            "version": version,
-            "epsg": raster.epsg,
-            "cell_m": raster.cell_m,
-            "min_passes": cover["min_passes"],
-            "seen_m2": cover["seen_m2"],
-            "covered_m2": cover["covered_m2"],
-            "area": None
-            if area is None
-            else {
-                "area_m2": area["area_m2"],
-                "covered_m2": area["covered_m2"],
-                "fraction": area["covered_fraction"],
-                "gaps": area["gaps"],
-                "gaps_m2": area["gaps_m2"],
-                "min_gap_m2": area["min_gap_m2"],
-            },
-            "gaps": gaps,
-        }
+        summary = _summary(
+            survey, True, version, raster.epsg, raster.cell_m, cover["min_passes"],
+            cover["seen_m2"], cover["covered_m2"], None if area is None else _area_message(area),
+            gaps,
+        )  # fmt: skip
         info = CoverageInfo(
             raster.epsg, raster.cell_m, raster.west_m, raster.north_m, cols, rows, version
         )
