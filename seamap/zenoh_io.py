@@ -157,7 +157,7 @@ COVERAGE_SUMMARY_KEYS = (
     "survey", "time", "final", "version", "epsg", "cell_m", "min_passes", "seen_m2",
     "covered_m2", "area", "gaps",
 )  # fmt: skip
-"""What a coverage summary holds (``coverage_summary``)."""
+"""What a coverage summary holds (``seamap.coverage``'s publications)."""
 
 
 def parse_coverage_summary(data: bytes, survey: str | None = None) -> dict[str, Any]:

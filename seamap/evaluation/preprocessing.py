@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapping.fmt import FmtRegistrar
+from mapping.fmt import FmtRegistrar, PreparedFrame
 from mapping.frames import LocalRegistration, SonarFrame, SonarMount
 from mapping.metrics import image_metrics
 from mapping.preprocess import PreprocessParams
@@ -67,36 +67,38 @@ def preprocessing_table(
     pings: Callable[[], Iterable[Ping]],
     mount: SonarMount,
     every: int = 10,
-    progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[str, dict[str, float]]:
     """Per configuration (by name): the mean metrics over the sampled frames and
     ``similarity`` (the mean FMT peak of each sampled frame against its successor),
-    ``frames`` (how many were measured)."""
+    ``frames`` (how many were measured). One pass over the pings, every configuration
+    preprocessing the sampled ones."""
     every = max(int(every), 1)
-    table: dict[str, dict[str, float]] = {}
-    for k, configuration in enumerate(CONFIGURATIONS):
-        if progress is not None:
-            progress(f"Table I: {configuration.name}", k, len(CONFIGURATIONS))
-        local = LocalRegistration(mount, configuration.params)
-        rows: list[dict[str, float]] = []
-        scores: list[float] = []
-        previous = None
-        for index, ping in enumerate(pings()):
-            if index % every not in (0, 1):
-                continue
+    locals_ = [LocalRegistration(mount, c.params) for c in CONFIGURATIONS]
+    rows: list[list[dict[str, float]]] = [[] for _ in CONFIGURATIONS]
+    scores: list[list[float]] = [[] for _ in CONFIGURATIONS]
+    previous: list[PreparedFrame | None] = [None] * len(CONFIGURATIONS)
+    for index, ping in enumerate(pings()):
+        if index % every not in (0, 1):
+            continue
+        for k, local in enumerate(locals_):
             frame: SonarFrame = local.frame(ping)
             registrar = local.registrar
             assert isinstance(registrar, FmtRegistrar)
             if index % every == 0:
-                rows.append(image_metrics(frame.image.astype(float), frame.mask))
-                previous = registrar.prepare(frame.coarse)
-            elif previous is not None:
-                scores.append(registrar.register(previous, registrar.prepare(frame.coarse)).score)
-                previous = None
-        if not rows:
+                rows[k].append(image_metrics(frame.image.astype(float), frame.mask))
+                previous[k] = registrar.prepare(frame.coarse)
+            else:
+                earlier = previous[k]
+                if earlier is not None:
+                    later = registrar.prepare(frame.coarse)
+                    scores[k].append(registrar.register(earlier, later).score)
+                previous[k] = None
+    table: dict[str, dict[str, float]] = {}
+    for configuration, measured, similar in zip(CONFIGURATIONS, rows, scores, strict=True):
+        if not measured:
             continue
-        means = {key: float(np.mean([r[key] for r in rows])) for key in METRICS}
-        means["similarity"] = float(np.mean(scores)) if scores else float("nan")
-        means["frames"] = float(len(rows))
+        means = {key: float(np.mean([r[key] for r in measured])) for key in METRICS}
+        means["similarity"] = float(np.mean(similar)) if similar else float("nan")
+        means["frames"] = float(len(measured))
         table[configuration.name] = means
     return table

@@ -148,7 +148,7 @@ def evaluate_survey(inputs: Inputs, out: Path, every: int = 10, say: Say = print
     tables["table_iii"] = {
         mode: _spacing(modes.quadrat_spacing(run, quadrats)) for mode, run in runs.items()
     }
-    tables["table_iv"] = _table_iv(inputs, runs, quadrats, epsg, out)
+    tables["table_iv"] = _table_iv(inputs, runs, quadrats, epsg, out, times)
     step.done()
 
     step.start(5, "Table V: the single-stage trajectory rendered with each blending")
@@ -162,7 +162,7 @@ def evaluate_survey(inputs: Inputs, out: Path, every: int = 10, say: Say = print
     step.done()
 
     step.start(6, "figures and report")
-    figure_files = _figures(out, pings, mount, runs, rendered, quadrats, every)
+    figure_files = _figures(out, pings, len(times), mount, runs, rendered, quadrats, every)
     tables["figures"] = figure_files
     tables["modes"] = {mode: _mode_summary(run) for mode, run in runs.items()}
     (out / "tables.json").write_text(json.dumps(_finite(tables), indent=1) + "\n")
@@ -298,14 +298,14 @@ def _table_iv(
     quadrats: list[Quadrat] | None,
     epsg: int,
     out: Path,
+    times: list[float],
 ) -> dict[str, Any]:
-    times = registration.read_trajectory(runs["gps-only"].folder / "trajectory.csv", epsg).times
-    pairs = list(zip(times[:-1].tolist(), times[1:].tolist(), strict=True))
-    fmt = registration.read_trajectory(runs["fmt-only"].folder / "trajectory.csv", epsg)
-    gps = registration.read_trajectory(runs["gps-only"].folder / "trajectory.csv", epsg)
+    pairs = list(itertools.pairwise(times))  # Table II's: consecutive pings
     references = {
-        "fmt-only": registration.trajectory_steps(fmt, pairs),
-        "gps-only": registration.trajectory_steps(gps, pairs),
+        ref: registration.trajectory_steps(
+            registration.read_trajectory(runs[ref].folder / "trajectory.csv", epsg), pairs
+        )
+        for ref in ("fmt-only", "gps-only")
     }
     rows: dict[str, Any] = {}
     for lam in modes.LAMBDAS:
@@ -343,6 +343,7 @@ def _mode_summary(run: modes.ModeRun) -> dict[str, Any]:
 def _figures(
     out: Path,
     pings: Any,
+    count: int,
     mount: Any,
     runs: dict[str, modes.ModeRun],
     rendered: dict[str, blending.Rendered],
@@ -366,7 +367,6 @@ def _figures(
         "Fig. 5: the blendings on the single-stage poses",
     )
     # Fig. 3: the survey's middle sampled frame under each preprocessing.
-    count = sum(1 for _ in pings())
     wanted = (count // 2) // every * every
     ping = next(p for k, p in enumerate(pings()) if k == wanted)
     strip = []
