@@ -122,18 +122,19 @@ class CoverageInfo:
     rows: int
     version: int
 
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "epsg": self.epsg,
+            "cell_m": self.cell_m,
+            "west": self.west,
+            "north": self.north,
+            "cols": self.cols,
+            "rows": self.rows,
+            "version": self.version,
+        }
+
     def to_json(self) -> bytes:
-        return json_bytes(
-            {
-                "epsg": self.epsg,
-                "cell_m": self.cell_m,
-                "west": self.west,
-                "north": self.north,
-                "cols": self.cols,
-                "rows": self.rows,
-                "version": self.version,
-            }
-        )
+        return json_bytes(self.as_dict())
 
     @classmethod
     def from_json(cls, data: bytes) -> CoverageInfo:

@@ -94,18 +94,6 @@ def _tile_json(survey: str, col: int, row: int, info: TileInfo) -> dict[str, Any
     }
 
 
-def _raster_json(info: CoverageInfo) -> dict[str, Any]:
-    return {
-        "version": info.version,
-        "epsg": info.epsg,
-        "cell_m": info.cell_m,
-        "west": info.west,
-        "north": info.north,
-        "cols": info.cols,
-        "rows": info.rows,
-    }
-
-
 @dataclass
 class _Coverage:
     summary: dict[str, Any] | None = None
@@ -113,7 +101,7 @@ class _Coverage:
     png: bytes = b""
 
     def to_json(self) -> dict[str, Any]:
-        raster = _raster_json(self.info) if self.info is not None else None
+        raster = self.info.as_dict() if self.info is not None else None
         return {"summary": self.summary, "raster": raster}
 
 
