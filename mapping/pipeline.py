@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.blend import BlendParams, make_scorer
+from mapping.bottom import BottomParams
 from mapping.ekf import EkfParams
 from mapping.fmt import FmtParams, RelativePose
 from mapping.frames import (
@@ -45,7 +46,7 @@ from mapping.navigation import AttitudeTrack, estimate_at, gyro_epochs, prepare_
 from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
 from mapping.preprocess import PreprocessParams
-from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.tiles import TileSpill, TileStore
 
@@ -65,6 +66,8 @@ class NavSamples:
     gnss: Sequence[GnssFix]
     heading: Sequence[HeadingSample]
     attitude: Sequence[AttitudeSample] = ()
+    ranges: Sequence[RangeSample] = ()
+    """Soundings of a downward echosounder (``RangeSample``), when the boat carries one."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,8 @@ class PipelineParams:
     single_stage: SingleStageParams = field(default_factory=SingleStageParams)
     project_attitude: bool = True
     """Project each ping at the boat's roll and pitch when it was taken (else level)."""
+    bottom: BottomParams = field(default_factory=BottomParams)
+    """Where the seabed under each ping is found (``mapping.bottom``)."""
 
 
 @dataclass

@@ -104,7 +104,29 @@ class AttitudeSample:
     source: str = ""
 
 
-NavSample = ImuSample | GnssFix | HeadingSample | AttitudeSample
+@dataclass(frozen=True, slots=True)
+class RangeSample:
+    """One sounding of a downward-looking echosounder (a Ping2-class altimeter on the
+    autopilot): the distance from its transducer to the bottom along its beam (metres),
+    which is along the body's down axis. Not the sonar's altitude: the transducer sits at
+    its own mount offset, and the boat's roll and pitch tilt the beam.
+
+    min_m / max_m: the sensor's valid span (None: unknown); signal_quality: 1..100 percent
+    (None: not reported); variance_m2: the sensor's own variance of the distance (None:
+    not reported). source: the message, e.g. ``"DISTANCE_SENSOR"``, ``"RANGEFINDER"``,
+    ``"RFND"``.
+    """
+
+    time: float
+    distance_m: float
+    min_m: float | None = None
+    max_m: float | None = None
+    signal_quality: int | None = None
+    variance_m2: float | None = None
+    source: str = ""
+
+
+NavSample = ImuSample | GnssFix | HeadingSample | AttitudeSample | RangeSample
 
 
 @dataclass(frozen=True, slots=True, eq=False)
