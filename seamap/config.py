@@ -91,6 +91,23 @@ IMU_SOURCES = ("auto", "highres", "scaled", "scaled2", "scaled3", "raw")
 
 
 @dataclass(frozen=True)
+class EchosounderConfig:
+    """A downward echosounder on the autopilot (a Ping2-class altimeter reported as
+    MAVLink DISTANCE_SENSOR looking down, or ArduPilot's RANGEFINDER): its soundings give
+    the sonar's altitude and the bottom's slope ping by ping (``mapping.bottom``), in
+    place of ``[sonar] altitude_m``, which stays the fallback."""
+
+    use: bool = True
+    """Take the altitude from the echosounder's soundings when the navigation has them."""
+    mount_x_m: float = 0.0
+    """Body-frame offset of the transducer from the GPS antenna, forward (m)."""
+    mount_y_m: float = 0.0
+    """Starboard (m)."""
+    mount_z_m: float = 0.3
+    """Down (m): the transducer's face below the antenna."""
+
+
+@dataclass(frozen=True)
 class MavlinkConfig:
     url: str = "udpin:0.0.0.0:14550"
     """pymavlink connection string, or a serial device such as "/dev/ttyACM0"."""
@@ -223,6 +240,7 @@ class MissionConfig:
 class SiteConfig:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sonar: SonarConfig = field(default_factory=SonarConfig)
+    echosounder: EchosounderConfig = field(default_factory=EchosounderConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
@@ -261,6 +279,9 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("sonar", "gamma"): (0, 255),
     ("sonar", "tcp_port"): (1, 65535),
     ("sonar", "status_port"): (1, 65535),
+    ("echosounder", "mount_x_m"): (-10.0, 10.0),
+    ("echosounder", "mount_y_m"): (-10.0, 10.0),
+    ("echosounder", "mount_z_m"): (-10.0, 10.0),
     ("mavlink", "baud"): (1200, 12_000_000),
     ("mavlink", "declination_deg"): (-180.0, 180.0),
     # Mosaic pixels from 5 mm (the sonar's finest range cell is 2.4 mm) to 1 m.
