@@ -498,19 +498,22 @@ class FmtRegistrar:
         *,
         prior_sigma_m: float | None = None,
         n_hypotheses: int = 1,
+        later_mask: npt.NDArray[np.bool_] | None = None,
     ) -> Registration:
         """Register frames whose relative pose is far from identity (loop closures between
         lanes, often half a turn apart): the later frame is first moved into the earlier
         frame's grid by ``prior``, the small residual registered (``register``, same
         arguments), and the two composed. Hypotheses are composed the same way and scored
-        on the original frames."""
+        on the original frames. ``later_mask``: where the later frame has data, when not
+        this registrar's fan (``SonarFrame.own_mask``)."""
         to_metric = self.grid.pixel_to_metric()
         to_pixel = np.linalg.inv(to_metric)
         prior_pixels = to_pixel @ prior.matrix() @ to_metric  # later pixel -> earlier pixel
         rows, cols = self.grid.shape
         warped = cv2.warpAffine(later_image, prior_pixels[:2], (cols, rows), flags=cv2.INTER_LINEAR)
+        source_mask = self._mask_u8 if later_mask is None else later_mask.view(np.uint8)
         warped_mask = cv2.warpAffine(
-            self.mask.astype(np.uint8), prior_pixels[:2], (cols, rows), flags=cv2.INTER_NEAREST
+            source_mask, prior_pixels[:2], (cols, rows), flags=cv2.INTER_NEAREST
         ).astype(bool)
         if warped_mask.sum() < 0.05 * self.mask.sum():
             return Registration(prior, 0.0, 0.0, 0.0)

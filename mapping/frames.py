@@ -313,7 +313,7 @@ class LocalRegistration:
         if prior is None or not np.all(np.isfinite(prior)):
             return FrameOutcome(index, time, False, "no navigation prior")
         assert self.registrar is not None
-        prepared = self.registrar.prepare(frame.coarse)
+        prepared = self.registrar.prepare(frame.coarse, frame.coarse_mask)
         here = _Kept(index, time, prior, prepared, odometry, gyro_epoch)
         last, key = self._last, self._key
         if last is None or key is None or time - last.time > self.params.max_gap_s:

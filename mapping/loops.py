@@ -217,29 +217,32 @@ def register_hypotheses(
     last_use: dict[int, int] = {}
     for i, j in pairs:
         last_use[i] = max(last_use.get(i, -1), j)
-    held: dict[int, npt.NDArray[np.float32]] = {}
+    held: dict[int, tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]] = {}
     refiner: OverlapRefiner | None = None
     sonar = mount.sonar_pose(poses)
     out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for index, ping in enumerate(pings):
         if index not in wanted and index not in partners:
             continue
-        image = local.frame(ping).image
+        frame = local.frame(ping)
+        image, mask = frame.image, frame.own_mask
         if index in wanted:
-            held[index] = image
+            held[index] = (image, mask)
         registrar = local.fine_registrar
         for i in partners.get(index, []):
-            earlier = held.get(i)
-            if earlier is None:
+            kept = held.get(i)
+            if kept is None:
                 continue
+            earlier, earlier_mask = kept
             report.candidates += 1
             prior = relative_pose(sonar[i], sonar[index])
             reg = registrar.register_far(
-                registrar.prepare(earlier),
+                registrar.prepare(earlier, earlier_mask),
                 image,
                 prior,
                 prior_sigma_m=params.search_m,
                 n_hypotheses=params.hypotheses,
+                later_mask=mask,
             )
             report.registered += 1
             found: list[ClosureHypothesis] = []

@@ -14,6 +14,7 @@ bounded by the mosaic, not the survey.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
@@ -25,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.blend import BlendParams, make_scorer
-from mapping.bottom import BottomParams
+from mapping.bottom import BottomParams, SeabedAttitude, SonarGeometry, seabed_attitude
 from mapping.ekf import EkfParams
 from mapping.fmt import FmtParams, RelativePose
 from mapping.frames import (
@@ -45,7 +46,7 @@ from mapping.mosaic import SonarPose, TileGrid
 from mapping.navigation import AttitudeTrack, estimate_at, gyro_epochs, prepare_inputs
 from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
-from mapping.preprocess import PreprocessParams
+from mapping.preprocess import PreprocessParams, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.tiles import TileSpill, TileStore
@@ -113,6 +114,9 @@ class SurveyResult:
     mount: SonarMount
     closures: list[Edge] = field(default_factory=list)
     loops: LoopReport = field(default_factory=LoopReport)
+    bottom: dict[str, Any] = field(default_factory=dict)
+    """Where each ping's seabed came from (``mapping.bottom``): ``source`` "echosounder" or
+    "configured", the soundings used, how many pings had a plane, their altitudes."""
     fusion: dict[str, Any] = field(default_factory=dict)
     """Single-stage: what the fusion estimated (gyro bias, compass error, GNSS offset)
     and how well each kind of measurement fits."""
@@ -225,6 +229,39 @@ def blend_frames(
     return mosaic
 
 
+def _seabed(
+    pings: Callable[[], Iterable[Ping]],
+    nav: NavSamples,
+    times: Array,
+    priors: Array,
+    tilt_at: Callable[[float], Attitude | None] | None,
+    mount: SonarMount,
+    params: PipelineParams,
+) -> SeabedAttitude | None:
+    """Each ping's altitude and bottom slope from the echosounder (``mapping.bottom``),
+    or None (the mount's altitude, level)."""
+    if not nav.ranges or not params.bottom.use_echosounder or times.size == 0:
+        return None
+    first = next(iter(pings()))
+    bearings = np.asarray(first.bearings_rad, float)
+    p = params.preprocess
+    geometry = SonarGeometry(
+        down_m=mount.down_m,
+        altitude_m=mount.altitude_m,
+        tilt_rad=mount.tilt_rad,
+        max_range_m=first.max_range_m,
+        half_fan_rad=float(np.max(np.abs(bearings))) if bearings.size else 0.0,
+        lit_range_m=lit_min_range(
+            mount.altitude_m,
+            math.degrees(mount.tilt_rad),
+            p.vertical_aperture_deg,
+            p.near_margin_deg,
+        ),
+        sonar_pose=mount.sonar_pose,
+    )
+    return seabed_attitude(nav.ranges, times, priors, tilt_at, geometry, params.bottom)
+
+
 def map_survey(
     pings: Callable[[], Iterable[Ping]],
     nav: NavSamples,
@@ -260,7 +297,13 @@ def map_survey(
 
     outcomes: list[FrameOutcome] = list(registrations) if registrations is not None else []
     track = AttitudeTrack(nav.attitude, params.single_stage.graph.sonar_latency_s)
-    attitude = track.at if params.project_attitude else None
+    attitude: Callable[[float], Attitude | None] | None = (
+        track.at if params.project_attitude else None
+    )
+    seabed = _seabed(pings, nav, times, priors, attitude, mount, params)
+    if seabed is not None:
+        attitude = seabed
+    started = clock.add("bottom", started)
     registration = LocalRegistration(
         mount, params.preprocess, params.fmt, params.registration, attitude
     )
@@ -335,7 +378,21 @@ def map_survey(
     mosaic = blend_frames(
         pings(), poses, mapped, mount, frame, params, clock, progress, spill, attitude
     )
+    bottom: dict[str, Any] = {"source": "configured", "altitude_m": mount.altitude_m}
+    if seabed is not None:
+        altitudes = np.array([plane.altitude_m for plane in seabed.planes.values()])
+        bottom = {
+            "source": "echosounder",
+            "soundings": len(seabed.model),
+            "pings_with_plane": int(altitudes.size),
+            "altitude_m": {
+                "min": float(altitudes.min()) if altitudes.size else None,
+                "median": float(np.median(altitudes)) if altitudes.size else None,
+                "max": float(altitudes.max()) if altitudes.size else None,
+            },
+        }
     return SurveyResult(
+        bottom=bottom,
         frame=frame,
         mode=mode,
         times=times,

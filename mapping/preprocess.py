@@ -79,6 +79,14 @@ class SonarFrame:
     weight: npt.NDArray[np.float32]
     coarse: npt.NDArray[np.float32]
     fan_weight: npt.NDArray[np.float32]
+    coarse_mask: npt.NDArray[np.bool_] | None = None
+    """Where ``coarse`` has data, when the frame needs a window of its own (a ping at its
+    own altitude: its lit band moves by decimetres from the fixed fan's); None: the
+    registration grid's fixed fan window holds. Cut by the fixed window, such a frame's
+    hard edge, fixed to the sonar, would show to the correlation as a peak at no motion
+    (``FmtRegistrar.prepare``'s ``mask`` tapers it instead)."""
+    own_mask: npt.NDArray[np.bool_] | None = None
+    """Likewise ``mask`` on the blending grid (for the registrations made there)."""
 
 
 def lit_min_range(
@@ -152,6 +160,7 @@ class Preprocessor:
                 self.fan, self.registration_grid, self.min_range_m
             )
         self.registration_tables: CartesianTables = self.registration_projection.level
+
         self._ping_weight: tuple[
             CartesianTables, npt.NDArray[np.float32], npt.NDArray[np.float32]
         ] = (self.tables, self.weight, self.fan_weight)
@@ -209,7 +218,30 @@ class Preprocessor:
             else to_cartesian(polar, registration_tables) * scale
         )
         weight, fan_weight = self._weights(tables)
-        return SonarFrame(cart, tables.mask, weight, coarse, fan_weight)
+        # A ping at its own altitude (the seabed model's) gets a window of its own: its lit
+        # band moves by decimetres from ping to ping, and cut by the fixed fan's window its
+        # far edge, fixed to the sonar, shows to the correlation as a peak at no motion.
+        # Measured on a sloping shore (the sonar 0.8-2 m above the bed, the true altitude
+        # and slope given per ping): with the fixed window wherever the mask stayed within
+        # the taper, one registration in twenty between frames 1.6-1.8 m up measured no
+        # motion, lanes 41 cm apart; with every such frame in its own window, 3.2 cm. A
+        # ping that only rolls and pitches keeps the fixed window, as before (a frame
+        # whose mask leaves part of the window's flat core out also needs its own: that
+        # moves today's surveys' maps and waits for a run of the accuracy matrix).
+        own = (
+            attitude is not None
+            and attitude.altitude_m is not None
+            and attitude.altitude_m != self.fan.altitude_m
+        )
+        return SonarFrame(
+            cart,
+            tables.mask,
+            weight,
+            coarse,
+            fan_weight,
+            coarse_mask=registration_tables.mask if own else None,
+            own_mask=tables.mask if own else None,
+        )
 
     def _weights(
         self, tables: CartesianTables

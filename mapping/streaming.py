@@ -58,14 +58,14 @@ from mapping.navigation import position_sigma
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.polar import Attitude
 from mapping.posegraph import Edge
-from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
+from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.survey_graph import registration_sqrt_info
 from mapping.tiles import TileImage, TileSpill, TileStore, frame_layers
 
 Array = npt.NDArray[np.float64]
 _MOST_REDRAWS = 3.0
 """Frames drawn again with one new frame, at most."""
-Sample = ImuSample | GnssFix | HeadingSample | AttitudeSample | Ping
+Sample = ImuSample | GnssFix | HeadingSample | AttitudeSample | RangeSample | Ping
 
 
 @dataclass(frozen=True, slots=True)
@@ -331,6 +331,7 @@ class StreamingEngine:
         self._fixes: list[GnssFix] = []
         self._headings: list[HeadingSample] = []
         self._attitudes: list[AttitudeSample] = []
+        self._ranges: list[RangeSample] = []  # a downward echosounder's soundings
 
     # -- input -------------------------------------------------------------------------
     def add(self, sample: Sample) -> None:
@@ -413,6 +414,8 @@ class StreamingEngine:
             self._fixes.append(sample)
             if sample.usable:
                 self._gnss(sample)
+        elif isinstance(sample, RangeSample):
+            self._ranges.append(sample)
         self.stats.time("ekf", started)
 
     def _attitude_at(self, stamp: float) -> Attitude | None:
@@ -1075,7 +1078,9 @@ class StreamingEngine:
         closures, the final mode's optimisation, and every tile re-rendered; tile versions
         carry on growing."""
         self.flush()
-        nav = NavSamples(self._imu.samples(), self._fixes, self._headings, self._attitudes)
+        nav = NavSamples(
+            self._imu.samples(), self._fixes, self._headings, self._attitudes, ranges=self._ranges
+        )
         result = map_survey(
             pings,
             nav,
@@ -1130,4 +1135,11 @@ class _ImuRecord:
         return out
 
 
-_KINDS: dict[type, int] = {ImuSample: 0, AttitudeSample: 1, HeadingSample: 2, GnssFix: 3, Ping: 4}
+_KINDS: dict[type, int] = {
+    ImuSample: 0,
+    AttitudeSample: 1,
+    HeadingSample: 2,
+    GnssFix: 3,
+    Ping: 4,
+    RangeSample: 5,
+}

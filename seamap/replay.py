@@ -23,6 +23,7 @@ import numpy as np
 
 from daemon.recording import segments
 from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
+from mapping.bottom import BottomParams
 from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
 from mapping.mosaic import assemble
@@ -31,7 +32,7 @@ from mapping.samples import Ping
 from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
 from mapping.tiles import TileSpill
-from seamap.config import MappingConfig, SiteConfig, SonarConfig, load_config
+from seamap.config import EchosounderConfig, MappingConfig, SiteConfig, SonarConfig, load_config
 from seamap.coverage import AreaSource, write_coverage
 from seamap.errors import SeamapError
 from seamap.memory import return_large_blocks
@@ -67,8 +68,26 @@ def mount_from_config(sonar: SonarConfig) -> SonarMount:
     )
 
 
+def bottom_params(echosounder: EchosounderConfig, defaults: BottomParams) -> BottomParams:
+    """How the seabed under each ping is found, from the [echosounder] table: whether the
+    soundings are used, and where the transducer sits (body FRD, metres from the GPS
+    antenna)."""
+    return replace(
+        defaults,
+        use_echosounder=echosounder.use,
+        echosounder=replace(
+            defaults.echosounder,
+            forward_m=echosounder.mount_x_m,
+            starboard_m=echosounder.mount_y_m,
+            down_m=echosounder.mount_z_m,
+        ),
+    )
+
+
 def pipeline_params(config: SiteConfig) -> PipelineParams:
-    """The pipeline's settings from the site config's [mapping] table."""
+    """The pipeline's settings from the site config's [mapping] and [echosounder] tables
+    (replay, the daemon's live engine and survey-end pass, evaluate and bench all take
+    them from here)."""
     m = config.mapping
     defaults = PipelineParams()
     return replace(
@@ -79,6 +98,7 @@ def pipeline_params(config: SiteConfig) -> PipelineParams:
         loops=replace(defaults.loops, enabled=m.loop_closures),
         blend=replace(defaults.blend, method=m.blending),
         single_stage=single_stage_params(m, defaults.single_stage),
+        bottom=bottom_params(config.echosounder, defaults.bottom),
     )
 
 
@@ -133,8 +153,10 @@ def read_navigation(nav_logs: LogPaths, config: SiteConfig) -> tuple[NavSamples,
         "imu_samples": len(nav.imu),
         "gnss_fixes": len(nav.gnss),
         "headings": len(nav.heading),
+        "soundings": len(nav.ranges),
+        "soundings_source": nav.range_source,
     }
-    return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude), info
+    return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude, ranges=nav.ranges), info
 
 
 def ping_source(sonar_logs: LogPaths, skipped: dict[str, int]) -> Callable[[], Iterator[Ping]]:
@@ -182,8 +204,9 @@ def stream_survey(
         mount, StreamingParams(pipeline=params, tile_memory_mb=tile_memory_mb), spill=spill
     )
     arrivals: Iterator[Sample] = heapq.merge(
-        nav.imu, nav.gnss, nav.heading, nav.attitude, pings(), key=lambda sample: sample.time
-    )
+        nav.imu, nav.gnss, nav.heading, nav.attitude, nav.ranges, pings(),
+        key=lambda sample: sample.time,
+    )  # fmt: skip
     for sample in arrivals:
         engine.add(sample)
         if progress is not None and isinstance(sample, Ping):
@@ -302,6 +325,7 @@ def replay(
             "skipped_in_log": skipped,
         },
         "navigation": nav_info,
+        "bottom": result.bottom,
         "fusion": result.fusion,
         "crs": {"epsg": epsg, "res_m": params.mosaic_res_m, "west": west, "north": north},
         "mosaic": {

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import csv
 import json
+import struct
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -261,3 +264,120 @@ def test_a_bad_area_ends_in_one_line_before_mapping(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "area.geojson" in err[0] and "no polygon" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+# --- a downward echosounder -----------------------------------------------------------------
+
+ECHOSOUNDER_TOML = """
+[echosounder]
+use = {use}
+mount_x_m = 0.4
+mount_y_m = -0.1
+mount_z_m = 0.35
+"""
+
+
+def site_with_echosounder(survey: Path, path: Path, *, use: bool = True) -> Path:
+    """The survey's site.toml with the echosounder's table set (mount 0.4, -0.1, 0.35 m)."""
+    text = (survey / "site.toml").read_text()
+    start = text.find("[echosounder]")
+    if start >= 0:  # drop the simulator's own table
+        end = text.find("\n[", start + 1)
+        text = text[:start] + text[end + 1 :]
+    path.write_text(text + ECHOSOUNDER_TOML.format(use=str(use).lower()))
+    return path
+
+
+def nav_with_soundings(survey: Path, path: Path) -> tuple[Path, list[float]]:
+    """The survey's nav.tlog with what ArduPilot sends for a downward echosounder at 10 Hz
+    (DISTANCE_SENSOR and RANGEFINDER of the same sensor, from the autopilot), recorded
+    among the rest; the tlog and the distances (m) sent."""
+    from pymavlink.dialects.v20 import all as mavlink
+
+    from drivers.mavlink.framing import ScanTally, open_log, scan_tlog
+
+    with open_log(survey / "nav.tlog") as (_, buf):
+        records = [(t, bytes(msg.get_msgbuf())) for t, msg in scan_tlog(buf, ScanTally())]
+    sender = mavlink.MAVLink(None, 1, 1)
+    first, last = records[0][0], records[-1][0]
+    distances: list[float] = []
+    for k in range(int((last - first) * 10)):
+        t = first + 0.05 + 0.1 * k
+        cm = 90 + k % 40
+        distances.append(cm / 100)
+        for msg in (
+            mavlink.MAVLink_distance_sensor_message(
+                k * 100, 30, 5000, cm, 1, 0, 25, 4, 0.5, 0.5, (0, 0, 0, 0), 90
+            ),
+            mavlink.MAVLink_rangefinder_message(cm / 100, 1.2),
+        ):
+            records.append((t, bytes(msg.pack(sender))))
+            sender.seq = (sender.seq + 1) % 256
+    records.sort(key=lambda record: record[0])
+    path.write_bytes(b"".join(struct.pack(">Q", round(t * 1e6)) + frame for t, frame in records))
+    return path, distances
+
+
+def test_replay_gets_the_soundings_and_the_echosounders_mount(survey: Path, tmp_path: Path) -> None:
+    from mapping.bottom import BottomParams, EchosounderMount
+    from seamap.config import load_config
+    from seamap.replay import pipeline_params, read_navigation
+
+    nav, distances = nav_with_soundings(survey, tmp_path / "nav.tlog")
+    config = load_config(site_with_echosounder(survey, tmp_path / "site.toml"))
+    samples, info = read_navigation(nav, config)
+    # DISTANCE_SENSOR only: ArduPilot's RANGEFINDER repeats it.
+    assert [s.distance_m for s in samples.ranges] == distances
+    assert {s.source for s in samples.ranges} == {"DISTANCE_SENSOR"}
+    assert (info["soundings"], info["soundings_source"]) == (len(distances), "DISTANCE_SENSOR")
+    assert len(samples.imu) > 2000 and len(samples.gnss) == 91  # the rest as before
+
+    bottom = pipeline_params(config).bottom
+    assert bottom == BottomParams(
+        use_echosounder=True,
+        echosounder=EchosounderMount(forward_m=0.4, starboard_m=-0.1, down_m=0.35),
+    )
+    off = load_config(site_with_echosounder(survey, tmp_path / "off.toml", use=False))
+    assert pipeline_params(off).bottom.use_echosounder is False
+
+
+def test_the_streaming_engines_survey_end_pass_gets_the_soundings(
+    survey: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Soundings fed to the live engine with the rest reach its survey-end pass (the
+    daemon's), as replay's own NavSamples do."""
+    import itertools
+
+    import mapping.streaming
+    from seamap.config import load_config
+    from seamap.replay import (
+        mount_from_config,
+        ping_source,
+        pipeline_params,
+        read_navigation,
+        stream_survey,
+    )
+
+    nav, distances = nav_with_soundings(survey, tmp_path / "nav.tlog")
+    config = load_config(site_with_echosounder(survey, tmp_path / "site.toml"))
+    samples, _ = read_navigation(nav, config)
+    every_ping = ping_source(survey / "sonar.oculus", {})
+
+    def pings() -> Any:
+        return itertools.islice(every_ping(), 25)
+
+    seen: list[Any] = []
+    real = mapping.streaming.map_survey
+
+    def map_survey(pings: Any, nav: Any, *args: Any, **kwargs: Any) -> Any:
+        seen.append(nav)
+        return real(pings, nav, *args, **kwargs)
+
+    monkeypatch.setattr(mapping.streaming, "map_survey", map_survey)
+    params = replace(
+        pipeline_params(config), loops=replace(pipeline_params(config).loops, enabled=False)
+    )
+    stream_survey(pings, samples, mount_from_config(config.sonar), params)
+    [final] = seen
+    assert list(final.ranges) == list(samples.ranges)
+    assert [s.distance_m for s in final.ranges] == distances

@@ -18,7 +18,14 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from mapping.samples import AttitudeSample, GnssFix, GnssFixType, HeadingSample, ImuSample
+from mapping.samples import (
+    AttitudeSample,
+    GnssFix,
+    GnssFixType,
+    HeadingSample,
+    ImuSample,
+    RangeSample,
+)
 
 GRAVITY_MPS2 = 9.80665
 """Standard gravity: ArduPilot scales milli-g with exactly this (AP_Math GRAVITY_MSS)."""
@@ -67,6 +74,14 @@ HEADING_AUTO_ORDER = ("attitude", "global_position", "vfr_hud", "compass")
 GNSS_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT")
 """GPS_RAW_INT is the receiver's fix; GLOBAL_POSITION_INT (the autopilot's fused estimate)
 is only a fallback for logs without any GPS_RAW_INT."""
+
+RANGE_MESSAGES = ("DISTANCE_SENSOR", "RANGEFINDER")
+"""A downward echosounder's soundings, preferred first. ArduPilot sends both for the same
+sensor (RANGEFINDER for its first downward rangefinder, DISTANCE_SENSOR for each one), so
+a log or link that has a downward DISTANCE_SENSOR takes only that: RANGEFINDER has no
+valid span and no quality, and both together would count each sounding twice."""
+MAV_SENSOR_ROTATION_PITCH_270 = 25
+"""MAV_SENSOR_ORIENTATION (and ArduPilot's RNGFND_ORIENT) of a sensor looking down."""
 
 _UINT16_UNKNOWN = 65535
 _UINT8_UNKNOWN = 255
@@ -244,6 +259,86 @@ def attitude_from_mavlink(msg: Any, time: float) -> AttitudeSample | None:
     return AttitudeSample(time, msg.roll, msg.pitch, wrap_2pi(msg.yaw), "ATTITUDE")
 
 
+def _whole(value: Any) -> int | None:
+    """An integer field's value, None if it is not a whole finite number (a message
+    built in code, or by a faulty sender through a dialect that has floats there)."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return int(number) if math.isfinite(number) and number.is_integer() else None
+
+
+def downward_range_sensor(msg: Any) -> int | None:
+    """The sensor id of a downward-looking range message, else None.
+
+    DISTANCE_SENSOR: its ``id`` when ``orientation`` is MAV_SENSOR_ROTATION_PITCH_270
+    (looking down), None for any other orientation (a forward obstacle sensor).
+    RANGEFINDER: 0 (ArduPilot sends it for its first downward rangefinder only).
+    """
+    kind = msg.get_type()
+    if kind == "DISTANCE_SENSOR":
+        if _whole(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
+            return None
+        return _whole(msg.id) or 0
+    if kind == "RANGEFINDER":
+        return 0
+    return None
+
+
+def range_from_mavlink(msg: Any, time: float) -> RangeSample | None:
+    """DISTANCE_SENSOR looking down, or ArduPilot's RANGEFINDER -> RangeSample (metres).
+
+    DISTANCE_SENSOR (#132): current/min/max_distance in cm (uint16); only orientation 25
+    (MAV_SENSOR_ROTATION_PITCH_270, looking down) is a sounding. No reading -> None: a
+    current_distance of 0 or 65535 (UINT16_MAX), outside the sensor's own [min, max], or a
+    signal_quality of 1 (MAVLink: "invalid signal"; ArduPilot sends its 0 and 1 % so). A
+    span that is not one (max 0 or 65535, max <= min) is unknown: min_m/max_m None, the
+    distance unchecked. covariance (cm^2) -> variance_m2, 0 and 255 = unknown -> None;
+    signal_quality (%, a MAVLink 2 extension: 0 when absent) 0 = unknown -> None, above
+    100 is no percentage -> None.
+    RANGEFINDER (#173, ardupilotmega): ``distance`` in metres (float), no span or quality;
+    0, negative or not finite -> None.
+    A non-reading is dropped rather than kept with a flag: the mapper must never take one
+    as a distance, and a flag would leave that to every reader of the samples.
+    """
+    kind = msg.get_type()
+    if kind == "RANGEFINDER":
+        try:
+            distance = float(msg.distance)
+        except (TypeError, ValueError, OverflowError):
+            return None
+        if not _finite(distance) or distance <= 0.0:
+            return None
+        return RangeSample(time, distance, source=kind)
+    if kind != "DISTANCE_SENSOR" or downward_range_sensor(msg) is None:
+        return None
+    current = _whole(msg.current_distance)
+    if current is None or not 0 < current < _UINT16_UNKNOWN:
+        return None
+    quality = _whole(getattr(msg, "signal_quality", 0)) or 0
+    if quality == 1:
+        return None
+    distance = current / 100.0
+    low, high = _whole(msg.min_distance), _whole(msg.max_distance)
+    min_m: float | None = None
+    max_m: float | None = None
+    if low is not None and high is not None and 0 <= low < high < _UINT16_UNKNOWN:
+        min_m, max_m = low / 100.0, high / 100.0
+        if not min_m <= distance <= max_m:
+            return None
+    covariance = _whole(msg.covariance) or 0
+    return RangeSample(
+        time,
+        distance,
+        min_m=min_m,
+        max_m=max_m,
+        signal_quality=quality if 1 < quality <= 100 else None,
+        variance_m2=covariance * 1e-4 if 0 < covariance < _UINT8_UNKNOWN else None,
+        source=kind,
+    )
+
+
 # --- Magnetometer ----------------------------------------------------------------------------
 
 
@@ -413,3 +508,71 @@ def heading_from_dataflash(msg: Any, time: float) -> HeadingSample | None:
     yaw_format = msg.fmt.format[msg.fmt.colhash["Yaw"]]
     resolution = _CENTIDEGREE_RAD if yaw_format in "cC" else 0.0
     return HeadingSample(time, wrap_2pi(math.radians(msg.Yaw)), "ATT", resolution)
+
+
+DATAFLASH_RANGE_MESSAGES = ("RFND",)
+"""DataFlash messages of the rangefinders (``ranges_from_dataflash``)."""
+
+_RFND_GOOD = 4
+"""AP_RangeFinder RangeFinder::Status::Good (0 NotConnected, 1 NoData, 2 OutOfRangeLow,
+3 OutOfRangeHigh)."""
+
+
+def _rfnd_metres(msg: Any, column: str) -> float:
+    """A RFND distance field in metres, whatever the log declares it as.
+
+    ArduPilot logged it as format C (uint16 cm, which DFMessage scales by 0.01 to metres),
+    and newer versions as a float in metres. A plain integer is centimetres unless the
+    log's FMTU says metres; a float is metres unless the FMTU says centimetres.
+    """
+    value = float(getattr(msg, column))
+    char = msg.fmt.format[msg.fmt.colhash[column]]
+    unit = msg.fmt.get_unit(column)
+    if char in "cCeE":
+        return value
+    if char in "fdg":
+        return value / 100.0 if unit == "cm" else value
+    return value if unit == "m" else value / 100.0
+
+
+def ranges_from_dataflash(msg: Any, time: float) -> list[tuple[int, RangeSample | None]]:
+    """DataFlash RFND -> (rangefinder instance, RangeSample or None) of each downward one.
+
+    Layouts met in ArduPilot logs (read from the log's own FMT, not assumed):
+    ``TimeUS,Instance,Dist,Stat,Orient[,Quality]`` (one instance per message, 3.7 on),
+    ``TimeUS,Dist1,Orient1,Dist2,Orient2`` and, before orientations, ``TimeUS,Dist1,Dist2``
+    (every rangefinder then looked down). Dist: see ``_rfnd_metres``. Orient 25 is
+    downward; others are left out. No reading -> None: Stat other than Good (4), Dist 0 or
+    less or not finite, Quality 0 (no signal) or 1 (ArduPilot sends both as MAVLink's
+    "invalid"); Quality -1 is unknown -> signal_quality None.
+    """
+    columns = msg.fmt.colhash
+    if "Dist" in columns:
+        instance = (_whole(msg.Instance) or 0) if "Instance" in columns else 0
+        fields = [(instance, "Dist", "Orient")]
+    else:
+        fields = [(k - 1, f"Dist{k}", f"Orient{k}") for k in (1, 2) if f"Dist{k}" in columns]
+    out: list[tuple[int, RangeSample | None]] = []
+    for instance, dist, orient in fields:
+        if orient in columns and _whole(getattr(msg, orient)) != MAV_SENSOR_ROTATION_PITCH_270:
+            continue
+        out.append((instance, _rfnd_sample(msg, time, dist)))
+    return out
+
+
+def _rfnd_sample(msg: Any, time: float, dist: str) -> RangeSample | None:
+    columns = msg.fmt.colhash
+    if "Stat" in columns and _whole(msg.Stat) != _RFND_GOOD:
+        return None
+    quality = _whole(msg.Quality) if "Quality" in columns else -1
+    if quality in (0, 1):
+        return None
+    distance = _rfnd_metres(msg, dist)
+    if not _finite(distance) or distance <= 0.0:
+        return None
+    return RangeSample(
+        time,
+        distance,
+        signal_quality=quality if quality is not None and 1 < quality <= 100 else None,
+        source="RFND",
+    )

@@ -5,7 +5,8 @@ serial device + baud through pyserial), speaks MAVLink 2 and bridges to asyncio 
 place: ``loop.add_reader`` on the connection's file descriptor. Each read is stamped on
 receipt (``time.time()``, UNIX s); each packet goes raw to ``on_packet(bytes, time)`` (the
 .tlog recorder) and is then converted by ``drivers.mavlink.convert`` into ``ImuSample``,
-``GnssFix``, ``HeadingSample`` and ``AttitudeSample`` for ``on_sample`` (or ``samples()``).
+``GnssFix``, ``HeadingSample``, ``AttitudeSample`` and a downward echosounder's
+``RangeSample`` for ``on_sample`` (or ``samples()``).
 Only the autopilot counts: the (system, component) of the first autopilot HEARTBEAT.
 
 It announces itself once a second (HEARTBEAT, MAV_TYPE_ONBOARD_CONTROLLER /
@@ -18,7 +19,9 @@ streams are asked for again. Bad bytes are counted, never raised.
 Live source choice (``heading_source`` / ``imu_source`` "auto"): unlike ``navlog`` the link
 cannot look at the whole log, so a stream follows the best source (in the config's order)
 seen so far, never going back down; GLOBAL_POSITION_INT as a GNSS fix and the compass as a
-heading are fallbacks taken only when nothing better came within ``fallback_s`` of link up.
+heading are fallbacks taken only when nothing better came within ``fallback_s`` of link up;
+so is RANGEFINDER for the soundings (ArduPilot sends it beside the DISTANCE_SENSOR of the
+same downward sensor, which has its valid span and quality).
 """
 
 from __future__ import annotations
@@ -52,8 +55,11 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "ATTITUDE": 10.0,
     "GLOBAL_POSITION_INT": 10.0,
     "VFR_HUD": 4.0,
+    "DISTANCE_SENSOR": 10.0,
 }
-"""Requested rates (Hz); "IMU" stands for the IMU message chosen per autopilot."""
+"""Requested rates (Hz); "IMU" stands for the IMU message chosen per autopilot.
+DISTANCE_SENSOR: a downward echosounder's soundings (an autopilot without a rangefinder
+sends none, whatever is asked)."""
 
 _DATA_STREAMS: dict[str, int] = {
     "RAW_IMU": mavlink2.MAV_DATA_STREAM_RAW_SENSORS,
@@ -65,6 +71,7 @@ _DATA_STREAMS: dict[str, int] = {
     "ATTITUDE": mavlink2.MAV_DATA_STREAM_EXTRA1,
     "GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
     "VFR_HUD": mavlink2.MAV_DATA_STREAM_EXTRA2,
+    "DISTANCE_SENSOR": mavlink2.MAV_DATA_STREAM_EXTRA3,
 }
 """ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) that carry each message."""
 
@@ -203,6 +210,8 @@ class MavlinkLink:
         self._imu = _Chooser(convert.IMU_AUTO_ORDER, imu_source, frozenset())
         self._heading = _Chooser(convert.HEADING_AUTO_ORDER, heading_source, frozenset({"compass"}))
         self._gnss = _Chooser(convert.GNSS_MESSAGES, "auto", frozenset({"GLOBAL_POSITION_INT"}))
+        self._range = _Chooser(convert.RANGE_MESSAGES, "auto", frozenset({"RANGEFINDER"}))
+        self._range_ids: dict[str, int] = {}
         self._imu_names = {message: name for name, message in convert.IMU_MESSAGES.items()}
         self._heading_names = {m: name for name, m in convert.HEADING_MESSAGES.items()}
         self._imu_ids: dict[str, int] = {}
@@ -433,6 +442,15 @@ class MavlinkLink:
         heading_name = self._heading_names.get(kind)
         if heading_name is not None and self._heading.accept(heading_name, fallback_due):
             self._emit(convert.heading_from_mavlink(msg, now))
+        if kind in convert.RANGE_MESSAGES:
+            # The first downward sensor seen, by id; forward-looking ones are no soundings.
+            sensor = convert.downward_range_sensor(msg)
+            if (
+                sensor is not None
+                and self._range_ids.setdefault(kind, sensor) == sensor
+                and self._range.accept(kind, fallback_due)
+            ):
+                self._emit(convert.range_from_mavlink(msg, now))
 
     # --- sending ---------------------------------------------------------------------------
 

@@ -1,8 +1,9 @@
 """Read MAVLink navigation logs (.tlog, ArduPilot DataFlash .bin) into typed samples.
 
 ``framing`` finds and decodes the messages (past damage) and the times; here they become
-IMU, GNSS, heading and attitude samples from the autopilot alone, one source is chosen
-per stream over the whole log, and what the reading met is reported (``NavReadReport``).
+IMU, GNSS, heading and attitude samples and a downward echosounder's soundings from the
+autopilot alone, one source is chosen per stream over the whole log, and what the
+reading met is reported (``NavReadReport``).
 Consecutive .tlog segments of one survey (the recorder starts one per daemon start) are
 read as one log. ``summarize_nav_log`` gives ``seamap info`` the same counts without
 keeping samples. Memory is bounded by the samples kept (files are memory-mapped, not read).
@@ -32,7 +33,7 @@ from drivers.mavlink.framing import (
     open_log,
     scan_tlog,
 )
-from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample
+from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, RangeSample
 from seamap.config import HEADING_SOURCES, IMU_SOURCES
 
 __all__ = ["NavLog", "NavLogError", "NavReadReport", "read_nav_log", "summarize_nav_log"]
@@ -97,6 +98,11 @@ class NavLog:
     """Config name of the IMU message used ("highres", ...; "IMU" for DataFlash)."""
     gnss_source: str | None
     report: NavReadReport
+    ranges: list[RangeSample] = field(default_factory=list)
+    """Soundings of a downward echosounder (readings only: no reading is no sample)."""
+    range_source: str | None = None
+    """The message they came from: "DISTANCE_SENSOR", "RANGEFINDER" or "RFND"; None
+    when the log has no downward rangefinder."""
 
 
 _GLITCH_S = 3600.0
@@ -150,7 +156,8 @@ class _Span:
 
 _IMU_NAMES = {message: name for name, message in convert.IMU_MESSAGES.items()}
 _HEADING_NAMES = {message: name for name, message in convert.HEADING_MESSAGES.items()}
-_NAV_MESSAGES = {*_IMU_NAMES, *_HEADING_NAMES, *convert.GNSS_MESSAGES}
+_NAV_MESSAGES = {*_IMU_NAMES, *_HEADING_NAMES, *convert.GNSS_MESSAGES, *convert.RANGE_MESSAGES}
+_DATAFLASH_READ = {*convert.DATAFLASH_MESSAGES, *convert.DATAFLASH_RANGE_MESSAGES}
 
 
 @dataclass
@@ -170,6 +177,12 @@ class _Vehicle:
     compass_level: dict[str, list[HeadingSample]] = field(default_factory=dict)
     gnss: dict[str, list[GnssFix]] = field(default_factory=dict)
     attitude: list[AttitudeSample] = field(default_factory=list)
+    ranges: dict[str, list[RangeSample]] = field(default_factory=dict)
+    range_seen: set[str] = field(default_factory=set)
+    """Range messages seen looking down, readings or not: their presence decides the
+    source (a DISTANCE_SENSOR whose readings are all out of range still outranks
+    RANGEFINDER, which would give those same non-readings as distances)."""
+    range_ids: dict[str, int] = field(default_factory=dict)
     imu_ids: dict[str, int] = field(default_factory=dict)
     h_acc_by_time_us: dict[int, float] = field(default_factory=dict)
     gnss_time_us: list[int] = field(default_factory=list)
@@ -226,9 +239,29 @@ class _Vehicle:
         name = _HEADING_NAMES.get(kind)
         if name is not None and self.wanted_heading in ("auto", name):
             self._add(self.heading, name, convert.heading_from_mavlink(msg, time))
+        if kind in convert.RANGE_MESSAGES:
+            self.take_range(msg, time)
+
+    def take_range(self, msg: Any, time: float) -> None:
+        """A DISTANCE_SENSOR or RANGEFINDER: a sounding of the first downward sensor seen
+        (one id per message type; forward-looking sensors are not soundings)."""
+        kind = msg.get_type()
+        sensor = convert.downward_range_sensor(msg)
+        if sensor is None or self.range_ids.setdefault(kind, sensor) != sensor:
+            return
+        self.range_seen.add(kind)
+        self._add(self.ranges, kind, convert.range_from_mavlink(msg, time))
+
+    def take_rfnd(self, msg: Any, time: float) -> None:
+        """A DataFlash RFND: the soundings of the first downward rangefinder seen."""
+        for instance, sample in convert.ranges_from_dataflash(msg, time):
+            if self.range_ids.setdefault("RFND", instance) == instance:
+                self.range_seen.add("RFND")
+                self._add(self.ranges, "RFND", sample)
 
     def take_dataflash(self, msg: Any, time: float, time_us: int) -> None:
-        """Convert one DataFlash message; only instance 0 (the primary sensor) is read.
+        """Convert one DataFlash message; only instance 0 (the primary sensor) is read,
+        and of the rangefinders (RFND) the first one looking down.
 
         DataFlash has no checksum: a message that lacks the fields its type should have,
         or holds values of the wrong kind (a damaged FMT), is counted as unusable.
@@ -239,6 +272,9 @@ class _Vehicle:
             self.unusable += 1
 
     def _take_dataflash(self, msg: Any, time: float, time_us: int) -> None:
+        if msg.get_type() in convert.DATAFLASH_RANGE_MESSAGES:
+            self.take_rfnd(msg, time)
+            return
         known = convert.dataflash_kind(msg)
         if known is None or known[1] != 0:
             return
@@ -277,6 +313,15 @@ def _pick(streams: dict[str, list[T]], order: Iterable[str], wanted: str) -> str
     return next((name for name in candidates if streams.get(name)), None)
 
 
+def _range_source(vehicle: _Vehicle, order: Iterable[str], report: NavReadReport) -> str | None:
+    """The first range message in ``order`` seen looking down; a note when a later one
+    is left out (ArduPilot's RANGEFINDER repeats its downward DISTANCE_SENSOR)."""
+    seen = [name for name in order if name in vehicle.range_seen]
+    for other in seen[1:]:
+        report.notes.append(f"{other} ignored: {seen[0]} reports the same soundings")
+    return seen[0] if seen else None
+
+
 def _by_time(samples: list[Any], report: NavReadReport) -> list[Any]:
     """Sorted by time (stable: receive order among equal stamps); count the steps back."""
     report.time_backwards += sum(1 for a, b in itertools.pairwise(samples) if b.time < a.time)
@@ -293,6 +338,7 @@ def _finish(
     *,
     imu_order: tuple[str, ...],
     gnss_order: tuple[str, ...],
+    range_order: tuple[str, ...],
     compass_key: str | None,
 ) -> NavLog:
     """Choose one source per stream over the whole log and sort the samples."""
@@ -312,6 +358,7 @@ def _finish(
             if not vehicle.attitude:
                 report.notes.append("compass heading assumes a level vehicle: no attitude")
     gnss_name = _pick(vehicle.gnss, gnss_order, "auto")
+    range_name = _range_source(vehicle, range_order, report)
     for wanted, chosen, what in (
         (vehicle.wanted_imu, imu_name, "imu_source"),
         (vehicle.wanted_heading, heading_name, "heading_source"),
@@ -329,6 +376,8 @@ def _finish(
         imu_source=imu_name,
         gnss_source=gnss_name,
         report=report,
+        ranges=_by_time(vehicle.ranges.get(range_name, []) if range_name else [], report),
+        range_source=range_name,
     )
 
 
@@ -450,6 +499,7 @@ def _read_tlog(
         autopilot,
         imu_order=convert.IMU_AUTO_ORDER,
         gnss_order=convert.GNSS_MESSAGES,
+        range_order=convert.RANGE_MESSAGES,
         compass_key=None,
     )
 
@@ -462,7 +512,7 @@ def _read_dataflash(buf: Buffer, report: NavReadReport, vehicle: _Vehicle) -> Na
     span = _Span()
     for time, (fmt, offset) in _drop_time_glitches(dataflash_records(scan, time_base), report):
         span.add(time)
-        if fmt.name in convert.DATAFLASH_MESSAGES:
+        if fmt.name in _DATAFLASH_READ:
             msg = scan.decode(fmt, offset)
             msg._timestamp = time
             vehicle.take_dataflash(msg, time, scan.time_us(fmt, offset) or 0)
@@ -474,6 +524,7 @@ def _read_dataflash(buf: Buffer, report: NavReadReport, vehicle: _Vehicle) -> Na
         "ardupilot",
         imu_order=("IMU",),
         gnss_order=("GPS",),
+        range_order=convert.DATAFLASH_RANGE_MESSAGES,
         compass_key="MAG",
     )
 
@@ -485,13 +536,17 @@ def summarize_nav_log(path: str | os.PathLike[str]) -> dict[str, Any]:
     (UNIX s, or s since boot when time_reference is "boot"), messages {TYPE: count},
     autopilot, autopilot_id, time_reference, file_bytes, bytes_skipped, bad_packets,
     bad_timestamps, truncated, time_backwards (tlog receive stamps; None for DataFlash,
-    whose message types are not written in strict time order).
+    whose message types are not written in strict time order), soundings (the downward
+    echosounder's readings that ``read_nav_log`` keeps) and soundings_source (the message
+    they come from, None without one).
     """
     with open_log(path) as (where, buf):
         kind = detect_format(buf, where)
         report = NavReadReport(str(where), kind, file_bytes=len(buf))
         span = _Span()
         autopilot = "unknown"
+        # Soundings per sender: they are the autopilot's only, as read_nav_log keeps them.
+        sounders: dict[tuple[int, int], _Vehicle] = {}
         if kind == "tlog":
             counts: Counter[str] = Counter()
             for time, msg in _drop_time_glitches(scan_tlog(buf, report), report):
@@ -500,13 +555,30 @@ def summarize_nav_log(path: str | os.PathLike[str]) -> dict[str, Any]:
                 if report.autopilot_id is None and convert.is_autopilot_heartbeat(msg):
                     report.autopilot_id = (msg.get_srcSystem(), msg.get_srcComponent())
                     autopilot = convert.autopilot_name(msg.autopilot)
+                if msg.get_type() in convert.RANGE_MESSAGES:
+                    source = (msg.get_srcSystem(), msg.get_srcComponent())
+                    sounders.setdefault(source, _Vehicle("auto", "auto", 0.0)).take_range(msg, time)
             report.counts = dict(sorted(counts.items()))
+            range_order: tuple[str, ...] = convert.RANGE_MESSAGES
+            sender = report.autopilot_id or max(
+                sounders, key=lambda s: sounders[s].samples, default=(0, 0)
+            )
         else:
             autopilot = "ardupilot"
             time_base = dataflash_time_base(buf, report)
             scan = DataFlashScan(buf, report)
-            for time, _ in _drop_time_glitches(dataflash_records(scan, time_base), report):
+            sender = (0, 0)
+            rfnd = sounders.setdefault(sender, _Vehicle("auto", "auto", 0.0))
+            for time, (fmt, offset) in _drop_time_glitches(
+                dataflash_records(scan, time_base), report
+            ):
                 span.add(time)
+                if fmt.name in convert.DATAFLASH_RANGE_MESSAGES:
+                    rfnd.take_dataflash(scan.decode(fmt, offset), time, 0)
+            range_order = convert.DATAFLASH_RANGE_MESSAGES
+        sounder = sounders.get(sender)
+        range_name = _range_source(sounder, range_order, report) if sounder else None
+        soundings = len(sounder.ranges.get(range_name, [])) if sounder and range_name else 0
     return {
         "kind": "mavlink",
         "format": kind,
@@ -523,4 +595,6 @@ def summarize_nav_log(path: str | os.PathLike[str]) -> dict[str, Any]:
         "bad_timestamps": report.bad_timestamps,
         "truncated": report.truncated,
         "time_backwards": span.backwards if kind == "tlog" else None,
+        "soundings": soundings,
+        "soundings_source": range_name,
     }

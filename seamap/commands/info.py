@@ -83,6 +83,10 @@ def format_summary(path: Path, summary: dict[str, Any]) -> str:
         lines.append(f"  messages:   {summary['count']}")
         if "autopilot" in summary:
             lines.append(f"  autopilot:  {summary['autopilot']}")
+        if summary.get("soundings_source"):
+            lines.append(
+                f"  soundings:  {summary['soundings']} ({summary['soundings_source']}, downward)"
+            )
     messages = summary.get("messages") or {}
     if messages:
         width = max(len(name) for name in messages)

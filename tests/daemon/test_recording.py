@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import math
 import threading
@@ -13,11 +14,15 @@ import pytest
 from pymavlink.dialects.v20 import all as mavlink
 
 from daemon.recording import SurveyRecorder, TlogWriter, segments
-from drivers.mavlink import read_nav_log
+from drivers.mavlink import read_nav_log, summarize_nav_log
 from drivers.mavlink.framing import ScanTally, open_log, scan_tlog
+from drivers.mavlink.link import MavlinkLink
 from drivers.oculus.logfile import LogReadReport, OculusLogWriter, iter_log_items, iter_pings
 from drivers.oculus.ping import build_simple_ping
-from mapping.samples import Ping
+from mapping.samples import Ping, RangeSample
+from tests.drivers import mavlink_fixtures as fx
+from tests.ports import free_udp_port
+from tools.emulators.autopilot import AutopilotEmulator
 
 T0 = 1_718_000_000.0
 MB = 1024 * 1024
@@ -280,3 +285,42 @@ def test_other_write_error_stops_without_full(
     assert not rec.record_mavlink(*mavlink_packet(1))
     assert rec.stats.stopped and not rec.stats.full and rec.stats.errors == 1
     assert_tlog(read_tlog(tmp_path / "nav-001.tlog"), [mavlink_packet(0)])
+
+
+def test_the_live_links_recording_keeps_the_echosounders_packets(tmp_path: Path) -> None:
+    """The daemon's wiring: every packet the link receives goes raw to the recorder, so
+    DISTANCE_SENSOR (both sensors) and RANGEFINDER are in the survey's .tlog, and a replay
+    of it has the soundings the live map had, at the same stamps."""
+    played = fx.write_tlog(
+        tmp_path / "played.tlog", fx.by_time(fx.ardupilot_messages(), fx.echosounder_messages())
+    )
+    survey = tmp_path / "surveys" / "s1"
+    live: list[Any] = []
+
+    async def run() -> None:
+        port = free_udp_port()
+        with SurveyRecorder(survey, min_free_bytes=0) as rec:
+
+            def on_packet(packet: bytes, received: float) -> None:
+                rec.record_mavlink(packet, received)
+
+            link = MavlinkLink(
+                f"udpin:127.0.0.1:{port}", on_packet=on_packet, on_sample=live.append
+            )
+            emu = AutopilotEmulator.from_tlog(played, time_scale=2.0)
+            async with link, emu:
+                await emu.start_udp(port)
+                await asyncio.wait_for(emu.done.wait(), 10.0)
+                await asyncio.sleep(0.2)
+
+    asyncio.run(asyncio.wait_for(run(), 20.0))
+    _, nav = segments(survey)
+    messages = summarize_nav_log(nav[0])["messages"]
+    assert (messages["DISTANCE_SENSOR"], messages["RANGEFINDER"]) == (60, 30)
+    recorded = read_nav_log(nav[0])
+    assert recorded.range_source == "DISTANCE_SENSOR" and len(recorded.ranges) == 19
+    soundings = [s for s in live if isinstance(s, RangeSample)]
+    assert len(soundings) == len(recorded.ranges)
+    for got, kept in zip(soundings, recorded.ranges, strict=True):
+        assert got.time == pytest.approx(kept.time, abs=1e-6)  # µs stamps in the .tlog
+        assert got.distance_m == kept.distance_m and got.source == kept.source

@@ -50,6 +50,8 @@ _MAVLINK1_LENGTH = {
     "ATTITUDE": 28,
     "SYSTEM_TIME": 12,
     "STATUSTEXT": 51,
+    "DISTANCE_SENSOR": 14,
+    "RANGEFINDER": 8,
 }
 
 
@@ -149,6 +151,11 @@ class Truth:
     @property
     def velocity_ne(self) -> tuple[float, float]:
         return (1.2, 1.5)
+
+    @property
+    def depth_m(self) -> float:
+        """The downward echosounder's distance to the bottom (m): a slope and a swell."""
+        return 3.0 + 0.2 * self.t + 0.3 * math.sin(0.8 * self.t)
 
 
 def earth_field_ned(
@@ -307,6 +314,97 @@ def ardupilot_messages(
     return out
 
 
+DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
+FORWARD = 0  # MAV_SENSOR_ROTATION_NONE
+PING2_MIN_CM, PING2_MAX_CM = 30, 5000
+"""A Ping2-class echosounder's span as ArduPilot reports it (0.3 .. 50 m)."""
+
+
+def no_reading(k: int) -> str | None:
+    """Why the echosounder's k-th downward DISTANCE_SENSOR is no reading, if it is not."""
+    if k % 7 == 3:
+        return "beyond max"
+    if k % 11 == 5:
+        return "zero"
+    if k % 13 == 6:
+        return "invalid signal"
+    if k % 17 == 8:
+        return "below min"
+    return None
+
+
+def echosounder_messages(
+    seconds: float = 3.0,
+    rate_hz: float = 10.0,
+    *,
+    distance_sensor: bool = True,
+    forward: bool = True,
+    rangefinder: bool = True,
+    mavlink1: bool = False,
+    sysid: int = 1,
+) -> list[Sent]:
+    """What ArduPilot sends for a Ping2 echosounder looking down (rangefinder instance 0)
+    and an obstacle sensor looking forward (instance 1): a DISTANCE_SENSOR for each and a
+    RANGEFINDER for the downward one, at rate_hz. The downward readings follow
+    ``Truth.depth_m``, except those ``no_reading`` names; covariance 4 cm^2 and quality
+    87 % on even k, unknown (255, 0) on odd k. Times are 100 µs after the
+    ``ardupilot_messages`` at the same k, so both interleave."""
+    out: list[Sent] = []
+    for k in range(round(seconds * rate_hz)):
+        time_us = T0_US + round(k / rate_hz * 1e6) + 100
+        depth = Truth(k / rate_hz).depth_m
+        current = round(depth * 100)
+        quality = 87 if k % 2 == 0 else 0
+        bad = no_reading(k)
+        if bad == "beyond max":
+            current = PING2_MAX_CM + 500
+        elif bad == "zero":
+            current = 0
+        elif bad == "invalid signal":
+            quality = 1
+        elif bad == "below min":
+            current = PING2_MIN_CM - 10
+        if distance_sensor:
+            out.append(
+                Sent(
+                    time_us,
+                    mavlink.MAVLink_distance_sensor_message(
+                        k * 100, PING2_MIN_CM, PING2_MAX_CM, current, 1, 0, DOWNWARD,
+                        4 if k % 2 == 0 else 255, 0.5, 0.5, (0, 0, 0, 0), quality,
+                    ),
+                    sysid,
+                    mavlink1=mavlink1,
+                )
+            )  # fmt: skip
+            if forward:
+                out.append(
+                    Sent(
+                        time_us + 1,
+                        mavlink.MAVLink_distance_sensor_message(
+                            k * 100, 20, 4000, 750, 1, 1, FORWARD, 0, 0, 0, (0, 0, 0, 0), 90
+                        ),
+                        sysid,
+                        mavlink1=mavlink1,
+                    )
+                )
+        if rangefinder:
+            # ArduPilot's RANGEFINDER: the downward sensor's distance, valid or not.
+            out.append(
+                Sent(
+                    time_us + 2,
+                    mavlink.MAVLink_rangefinder_message(current / 100.0, 1.25),
+                    sysid,
+                    mavlink1=mavlink1,
+                )
+            )
+    return out
+
+
+def by_time(*streams: list[Sent]) -> list[Sent]:
+    """Several scenarios' messages as one log, in receive order (stable)."""
+    return sorted((sent for stream in streams for sent in stream), key=lambda s: s.time_us)
+
+
 def px4_messages(seconds: float = 2.0, rate_hz: float = 10.0) -> list[Sent]:
     """A PX4 boat as QGroundControl logs it (MAVLink 2): HIGHRES_IMU in SI with mag,
     RAW_IMU with raw sensor counts, ATTITUDE, GPS_RAW_INT with h_acc, VFR_HUD, and
@@ -402,6 +500,20 @@ ARDUPILOT_FORMATS: dict[str, tuple[int, str, str]] = {
 }
 
 
+RFND_TYPE = 160
+RFND_LAYOUTS: dict[str, tuple[str, str, str, str]] = {
+    # name: (format, columns, FMTU units, FMTU multipliers), as ArduPilot declared RFND
+    "plain": ("QCC", "TimeUS,Dist1,Dist2", "", ""),  # 3.3-3.4: no orientation, cm
+    "orient": ("QCBCB", "TimeUS,Dist1,Orient1,Dist2,Orient2", "", ""),  # 3.5-3.6
+    "instance": ("QBCBB", "TimeUS,Instance,Dist,Stat,Orient", "s#m--", "F-B--"),  # 3.7-4.1
+    "quality": ("QBCBBb", "TimeUS,Instance,Dist,Stat,Orient,Quality", "s#m--%", "F-B--0"),
+    "float": ("QBfBBb", "TimeUS,Instance,Dist,Stat,Orient,Quality", "s#m--%", "F-0--0"),
+    "integer_cm": ("QBHBB", "TimeUS,Instance,Dist,Stat,Orient", "s#m--", "F-B--"),
+}
+"""RFND layouts over ArduPilot versions; "float" is metres as a float; "integer_cm" an
+integer field whose FMTU says cm (m x 1e-2), read only through the log's declaration."""
+
+
 class DataFlashWriter:
     """Builds an ArduPilot DataFlash log in memory."""
 
@@ -475,20 +587,32 @@ def ardupilot_dataflash(
     att: tuple[str, str] = ATT_CENTIDEGREES,
     gps_week: bool = True,
     units: bool = True,
+    rfnd: str | None = None,
 ) -> DataFlashWriter:
     """A Rover DataFlash log: IMU (two instances), ATT, MAG (two), GPS + GPA at rate_hz/2
     (GPS week 0 until the third fix, or throughout when ``gps_week`` is False), with
-    UNIT/MULT/FMTU metadata as ArduPilot writes it when ``units``."""
+    UNIT/MULT/FMTU metadata as ArduPilot writes it when ``units``. ``rfnd``: an
+    ``RFND_LAYOUTS`` name: RFND at rate_hz too (``rfnd_messages``)."""
     log = DataFlashWriter()
     log.define_ardupilot(*ARDUPILOT_FORMATS, att=att)
+    if rfnd is not None:
+        log.define(RFND_TYPE, "RFND", *RFND_LAYOUTS[rfnd][:2])
     if units:
-        for ident, label in (("s", "seconds"), ("#", "instance"), ("G", "Gauss"), ("-", "")):
+        unit_labels = [("s", "seconds"), ("#", "instance"), ("G", "Gauss"), ("-", "")]
+        mults = [("F", 1e-6), ("C", 1e-3), ("-", 0.0), ("0", 1.0)]
+        if rfnd is not None:
+            unit_labels += [("m", "m"), ("%", "percent")]
+            mults += [("B", 1e-2)]
+        for ident, label in unit_labels:
             log.write("UNIT", TimeUS=1000, Id=ord(ident), Label=label)
-        for ident, mult in (("F", 1e-6), ("C", 1e-3), ("-", 0.0), ("0", 1.0)):
+        for ident, mult in mults:
             log.write("MULT", TimeUS=1000, Id=ord(ident), Mult=mult)
         log.write(
             "FMTU", TimeUS=1001, FmtType=144, UnitIds="s#GGGGGGGGG-s", MultIds="F-CCCCCCCCC-F"
         )
+        if rfnd is not None and RFND_LAYOUTS[rfnd][2]:
+            _, _, unit_ids, mult_ids = RFND_LAYOUTS[rfnd]
+            log.write("FMTU", TimeUS=1001, FmtType=RFND_TYPE, UnitIds=unit_ids, MultIds=mult_ids)
     log.write("PARM", TimeUS=2000, Name="SYSID_THISMAV", Value=1.0, Default=1.0)
     boot_us = 5_000_000
     for k in range(round(seconds * rate_hz)):
@@ -523,4 +647,35 @@ def ardupilot_dataflash(
                 U=1,
             )  # fmt: skip
             log.write("GPA", TimeUS=gps_us, I=0, VDop=1.2, HAcc=1.35 if k >= 4 else 0.0)
+        if rfnd is not None:
+            for values in rfnd_messages(rfnd, k, truth):
+                log.write("RFND", TimeUS=time_us + 40, **values)
     return log
+
+
+def rfnd_bad(k: int) -> bool:
+    """Whether the downward rangefinder's k-th RFND is no reading (out of range / 0)."""
+    return k % 7 == 3
+
+
+def rfnd_messages(layout: str, k: int, truth: Truth) -> list[dict[str, float | int]]:
+    """The RFND messages (field values, metres) of step k in a layout: a forward sensor
+    (instance 0 in the instance layouts, 7.5 m) and the downward echosounder at
+    ``truth.depth_m`` (Stat 3, out of range high, or Dist 0 where ``rfnd_bad``). In
+    "plain" (no orientation) Dist1 is the echosounder; in "orient" Dist1 looks forward."""
+    bad = rfnd_bad(k)
+    depth = 0.0 if bad and layout in ("plain", "orient") else truth.depth_m
+    if layout == "plain":
+        return [{"Dist1": depth, "Dist2": 7.5}]
+    if layout == "orient":
+        return [{"Dist1": 7.5, "Orient1": FORWARD, "Dist2": depth, "Orient2": DOWNWARD}]
+    quality = {"Quality": 80} if "Quality" in RFND_LAYOUTS[layout][1] else {}
+    scale = 100.0 if layout == "integer_cm" else 1.0  # plain integer fields hold cm
+    forward = {"Instance": 0, "Dist": 7.5 * scale, "Stat": 4, "Orient": FORWARD}
+    down = {
+        "Instance": 1,
+        "Dist": round(depth * scale, 2) if scale == 1.0 else round(depth * scale),
+        "Stat": 3 if bad else 4,
+        "Orient": DOWNWARD,
+    }
+    return [{**forward, **quality}, {**down, **quality}]

@@ -94,7 +94,7 @@ def test_heartbeat_and_message_intervals_reach_the_autopilot_and_are_acked(surve
     tlog, _ = survey
 
     async def body(link: MavlinkLink, emu: AutopilotEmulator, got: list[Any]) -> None:
-        await until(lambda: len(link.stats.requests) == 5 and emu.client.acks_sent == 5)
+        await until(lambda: len(link.stats.requests) == 6 and emu.client.acks_sent == 6)
         await until(lambda: all(r.result == "accepted" for r in link.stats.requests.values()))
         assert (18, 8) in emu.client.heartbeats  # ONBOARD_CONTROLLER, AUTOPILOT_INVALID
         assert emu.client.intervals_us == {
@@ -103,6 +103,7 @@ def test_heartbeat_and_message_intervals_reach_the_autopilot_and_are_acked(surve
             "ATTITUDE": 100_000,
             "GLOBAL_POSITION_INT": 100_000,
             "VFR_HUD": 250_000,
+            "DISTANCE_SENSOR": 100_000,  # a downward echosounder's soundings
         }
         assert emu.client.data_streams == []
         assert link.stats.autopilot == "ardupilot" and link.stats.autopilot_id == (1, 1)
@@ -115,16 +116,18 @@ def test_refused_intervals_fall_back_to_request_data_stream(survey):
     tlog, _ = survey
 
     async def body(link: MavlinkLink, emu: AutopilotEmulator, got: list[Any]) -> None:
-        await until(lambda: len(emu.client.data_streams) == 5)
+        await until(lambda: len(emu.client.data_streams) == 6)
         assert all(r.result == "refused" and r.fallback for r in link.stats.requests.values())
         # (stream, Hz, start): RAW_SENSORS 50, EXTENDED_STATUS 5, POSITION 10, EXTRA1 10,
-        # EXTRA2 4 (ArduPilot's groups for RAW_IMU, GPS_RAW_INT, GLOBAL_POSITION_INT, ...).
+        # EXTRA2 4, EXTRA3 10 (ArduPilot's groups for RAW_IMU, GPS_RAW_INT,
+        # GLOBAL_POSITION_INT, ..., DISTANCE_SENSOR).
         assert sorted(emu.client.data_streams) == [
             (1, 50, 1),
             (2, 5, 1),
             (6, 10, 1),
             (10, 10, 1),
             (11, 4, 1),
+            (12, 10, 1),
         ]
         await until(lambda: len(got) >= 20)
 

@@ -34,6 +34,7 @@ class _Frame:
     """Stands in for a preprocessed frame: its true sonar pose."""
 
     coarse: Array
+    coarse_mask: None = None
 
 
 @dataclass
@@ -44,7 +45,7 @@ class _Registrar:
     reach_m: float = math.inf
     spans: list[float] = field(default_factory=list)
 
-    def prepare(self, coarse: Array) -> Array:
+    def prepare(self, coarse: Array, mask: None = None) -> Array:
         return coarse
 
     def register(self, a: Array, b: Array, expected: Any, prior_sigma_m: float) -> Registration:

@@ -258,11 +258,23 @@ def test_a_level_ping_is_unchanged_by_a_level_attitude() -> None:
 
 @pytest.mark.parametrize("res_m", [0.01, 0.02, 0.03])
 @pytest.mark.parametrize(
-    ("roll_deg", "pitch_deg", "altitude_m", "mount_yaw_deg"),
-    [(3, -2, None, 0), (-6, 6, 1.3, 0), (10, 4, 0.7, 20), (0, 0, 1.0 + 1e-9, 0)],
+    ("roll_deg", "pitch_deg", "altitude_m", "mount_yaw_deg", "slope"),
+    [
+        (3, -2, None, 0, (0.0, 0.0)),
+        (-6, 6, 1.3, 0, (0.0, 0.0)),
+        (10, 4, 0.7, 20, (0.0, 0.0)),
+        (0, 0, 1.0 + 1e-9, 0, (0.0, 0.0)),
+        (2, -3, 1.2, 0, (0.08, -0.05)),
+        (-4, 2, 0.9, 25, (-0.1, 0.1)),
+    ],
 )
 def test_the_per_ping_tables_are_the_exact_ones(
-    res_m: float, roll_deg: float, pitch_deg: float, altitude_m: float | None, mount_yaw_deg: float
+    res_m: float,
+    roll_deg: float,
+    pitch_deg: float,
+    altitude_m: float | None,
+    mount_yaw_deg: float,
+    slope: tuple[float, float],
 ) -> None:
     fan = FanGeometry.of(
         bearing_table(512),
@@ -276,7 +288,7 @@ def test_the_per_ping_tables_are_the_exact_ones(
     min_range = lit_min_range(1.0, 15.0, 20.0, 1.0)
     grid = fan_grid(fan, res_m, min_range)
     projection = PingProjection(fan, grid, min_range)
-    attitude = Attitude(math.radians(roll_deg), math.radians(pitch_deg), altitude_m)
+    attitude = Attitude(math.radians(roll_deg), math.radians(pitch_deg), altitude_m, *slope)
     fast = projection.tables(attitude)
     exact = cartesian_tables(fan, grid, min_range, attitude)
     assert fast.mask.sum() > 0.3 * fast.mask.size

@@ -21,7 +21,9 @@ SMALL = {"max_pings": 20, "n_beams": 128}
 
 
 def test_scenarios_are_the_documented_ones():
-    assert set(SCENARIOS) == {"quadrats", "farm", "quadrats-current", "hectare"}
+    assert set(SCENARIOS) == {
+        "quadrats", "farm", "quadrats-current", "hectare", "shore", "mud", "deep", "rtk", "field",
+    }  # fmt: skip
 
 
 def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path: Path):

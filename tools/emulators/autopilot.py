@@ -11,7 +11,11 @@ of its log stamp instead, in step with the other devices on that clock.
 It answers MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK (accepted, or unsupported when
 ``accept_intervals`` is False) and thins a stream to the requested interval where it can:
 every k-th message, k = round(interval / the stream's period in the log), never faster than
-the log (intervals are in log time: ``time_scale`` speeds up the clock, not the rates).
+the log (intervals are in log time: ``time_scale`` speeds up the clock, not the rates). A
+message type sent for several sensors (DISTANCE_SENSOR, RAW_IMU with their ``id``) is one
+stream per sensor, each thinned on its own, as an autopilot sends each instance at the
+requested interval. Every message the log's autopilot sent is replayed, whatever its type
+(DISTANCE_SENSOR and RANGEFINDER soundings included).
 REQUEST_DATA_STREAM is recorded. Transports: UDP on 127.0.0.1 (sends to
 ``target``, and to whoever last wrote to it) or a pseudo-terminal whose slave is reached
 through a stable symlink, ``device_path``, as a USB serial device would be.
@@ -77,6 +81,14 @@ def read_autopilot_messages(path: str | os.PathLike[str]) -> list[tuple[float, A
         ]
 
 
+def _stream(msg: Any) -> tuple[str, int]:
+    """(message type, sensor id): the stream a message belongs to. Messages with an ``id``
+    field (DISTANCE_SENSOR, RAW_IMU, HIGHRES_IMU) are one stream per sensor."""
+    # Not getattr(msg, "id"): on messages without that field it is the class's message id.
+    has_id = "id" in msg.get_fieldnames()
+    return msg.get_type(), int(msg.id) if has_id else 0
+
+
 class AutopilotEmulator:
     """A MAVLink 2 autopilot fed by recorded messages (see the module docstring).
 
@@ -120,7 +132,7 @@ class AutopilotEmulator:
         self._parser = mavlink.MAVLink(None, 255, 0)
         self._parser.robust_parsing = True
         self._period_s = self._periods()
-        self._every: dict[str, int] = {}
+        self._every: dict[tuple[str, int], int] = {}
         self._gps_paused_until = 0.0
         self._rng = random.Random(seed)
         self.client_seen = asyncio.Event()
@@ -138,14 +150,14 @@ class AutopilotEmulator:
         """An emulator replaying the autopilot's messages of a .tlog."""
         return cls(read_autopilot_messages(path), **options)
 
-    def _periods(self) -> dict[str, float]:
-        """Median interval (s, log time) between messages of each type."""
-        times: dict[str, list[float]] = {}
+    def _periods(self) -> dict[tuple[str, int], float]:
+        """Median interval (s, log time) between messages of each stream."""
+        times: dict[tuple[str, int], list[float]] = {}
         for stamp, msg in self.messages:
-            times.setdefault(msg.get_type(), []).append(stamp)
+            times.setdefault(_stream(msg), []).append(stamp)
         return {
-            kind: float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1.0
-            for kind, stamps in times.items()
+            key: float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1.0
+            for key, stamps in times.items()
         }
 
     # --- transports ------------------------------------------------------------------------
@@ -305,15 +317,18 @@ class AutopilotEmulator:
             )
 
     def _set_interval(self, name: str, interval_us: float) -> None:
-        """-1 stops the stream, 0 restores the default, else every k-th message."""
-        if interval_us < 0:
-            self._every[name] = 0
-        elif interval_us == 0:
-            self._every.pop(name, None)
-        else:
-            # In log time: replaying faster speeds the clock up, not the requested rates.
-            period = self._period_s.get(name, 1.0)
-            self._every[name] = max(1, round(interval_us * 1e-6 / period))
+        """-1 stops the streams of message ``name``, 0 restores their default, else every
+        k-th message of each."""
+        for key, period in self._period_s.items():
+            if key[0] != name:
+                continue
+            if interval_us < 0:
+                self._every[key] = 0
+            elif interval_us == 0:
+                self._every.pop(key, None)
+            else:
+                # In log time: replaying faster speeds the clock up, not the requested rates.
+                self._every[key] = max(1, round(interval_us * 1e-6 / period))
 
     # --- tasks -----------------------------------------------------------------------------
 
@@ -331,7 +346,7 @@ class AutopilotEmulator:
             await asyncio.sleep(self.heartbeat_period_s)
 
     async def _replay(self) -> None:
-        seen: Counter[str] = Counter()
+        seen: Counter[tuple[str, int]] = Counter()
         if self.clock is not None:
             for stamp, msg in self.messages:
                 await self.clock.sleep_until(stamp)
@@ -352,13 +367,14 @@ class AutopilotEmulator:
             self._replay_one(msg, seen)
         self.done.set()
 
-    def _replay_one(self, msg: Any, seen: Counter[str]) -> None:
+    def _replay_one(self, msg: Any, seen: Counter[tuple[str, int]]) -> None:
         """Send one logged message unless its stream is thinned out or the GPS is paused;
-        ``seen`` counts the log's messages by type so far."""
+        ``seen`` counts the log's messages by stream so far."""
         kind = msg.get_type()
-        every = self._every.get(kind, 1)
-        seen[kind] += 1
-        if every == 0 or (seen[kind] - 1) % every:
+        key = _stream(msg)
+        every = self._every.get(key, 1)
+        seen[key] += 1
+        if every == 0 or (seen[key] - 1) % every:
             return
         if kind == "GPS_RAW_INT" and time.time() < self._gps_paused_until:
             return

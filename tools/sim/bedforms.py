@@ -24,7 +24,9 @@ hold on to.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -185,8 +187,19 @@ def place_mud(
     return tuple(patches)
 
 
+class RoundPatch(Protocol):
+    """Anything with a local centre and a radius (metres)."""
+
+    @property
+    def centre_east(self) -> float: ...
+    @property
+    def centre_north(self) -> float: ...
+    @property
+    def radius_m(self) -> float: ...
+
+
 def patch_mask(
-    patches: tuple[MudPatch, ...] | tuple[ShellPatch, ...],
+    patches: Sequence[RoundPatch],
     east: F32Array,
     north: F32Array,
     rng: np.random.Generator,

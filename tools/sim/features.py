@@ -66,7 +66,7 @@ def _ripples(seabed: Seabed, s: Scenario) -> dict[str, Any]:
 
 def features_section(seabed: Seabed, site: SiteFrame, s: Scenario) -> dict[str, Any]:
     """The truth's ``features``: quadrat arrays, racks, oysters, shell and mud patches,
-    ripples (UTM)."""
+    ripples, the seabed type, gravel patches and debris (``bottoms``; UTM)."""
     e0, n0 = site.utm_east0, site.utm_north0
     oysters = seabed.oysters
     in_quadrat = np.bincount(oysters.quadrat[oysters.quadrat >= 0], minlength=len(seabed.quadrats))
@@ -149,4 +149,19 @@ def features_section(seabed: Seabed, site: SiteFrame, s: Scenario) -> dict[str, 
         "shell_patches": _patches(seabed.shell_patches, e0, n0),
         "mud_patches": _patches(seabed.mud_patches, e0, n0),
         "ripples": _ripples(seabed, s),
+        "seabed_type": seabed.seabed_type,
+        "gravel_patches": _patches(seabed.gravel_patches, e0, n0),
+        "debris": [
+            {
+                "kind": d.kind,
+                "east": round_json(d.centre_east + e0, 3),
+                "north": round_json(d.centre_north + n0, 3),
+                "bearing_deg": round_json(d.bearing_deg, 2),
+                "length_m": round_json(d.length_m, 3),
+                "width_m": round_json(d.width_m, 3),
+                "height_m": round_json(d.height_m, 3),
+                "reflectivity": d.reflectivity,
+            }
+            for d in seabed.debris
+        ],
     }

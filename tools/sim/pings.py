@@ -94,8 +94,11 @@ class PingFrames:
         return sonar_pose(antenna, self.body_to_grid[k], self.model)
 
 
-def ping_frames(motion: Motion, model: SonarModel, seabed: Seabed, plan: PingPlan) -> PingFrames:
-    """True poses at the pings' acquisition times (see ``PingFrames``)."""
+def ping_frames(
+    motion: Motion, model: SonarModel, seabed: Seabed, plan: PingPlan, tide: float = 0.0
+) -> PingFrames:
+    """True poses at the pings' acquisition times (see ``PingFrames``); ``tide`` the water
+    level's rate of rise (m/s)."""
     at = motion.at(plan.acquisition)
     frames = PingFrames(at, euler_to_matrix(at["heading"], at["pitch"], at["roll"]), model)
     sonar_ned = np.array([frames.pose(k).position_ned for k in range(len(plan))]).reshape(-1, 3)
@@ -103,6 +106,10 @@ def ping_frames(motion: Motion, model: SonarModel, seabed: Seabed, plan: PingPla
     at["sonar_east"] = sonar_ned[:, 1]
     at["sonar_depth"] = sonar_ned[:, 2]
     at["altitude"] = seabed.depth_at(sonar_ned[:, 1], sonar_ned[:, 0]) - sonar_ned[:, 2]
+    grad_e, grad_n = seabed.depth_gradient(sonar_ned[:, 1], sonar_ned[:, 0])
+    # Perpendicular to the bed's smooth surface under the head (its local tangent plane).
+    at["altitude_normal"] = at["altitude"] / np.sqrt(1.0 + grad_e**2 + grad_n**2)
+    at["water_level"] = tide * (plan.acquisition - motion.start)
     return frames
 
 
@@ -169,7 +176,10 @@ class PingSource:
             assist = float(self.assist_db[k])
             image = render_ping(model, pose, self.seabed, self.speckle_rng, assist)
             heading, pitch, roll = _sonar_attitude(s, self.site, pose, self.attitude_rng)
-            depth_bar = max(0.0, float(pose.position_ned[2])) * 0.1005
+            depth = float(pose.position_ned[2])
+            if s.tide_rate_mps:  # below the risen (fallen) surface
+                depth += float(self.frames.state["water_level"][k])
+            depth_bar = max(0.0, depth) * 0.1005
             ping = Ping(
                 time=float(self.plan.receive[k]),
                 ping_id=int(self.plan.ids[k]),

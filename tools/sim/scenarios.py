@@ -8,7 +8,8 @@ grid north) unless the name says ``true``. Positions ``*_east_m``/``*_north_m`` 
 site's local frame: metres east/north of the site's UTM origin point (grid-aligned).
 
 ``SCENARIOS`` maps the public names (``quadrats``, ``farm``, ``quadrats-current``,
-``hectare``) to their records; ``resolve_scenario`` applies keyword overrides (any
+``hectare``, and the conditions users met: ``shore``, ``mud``, ``deep``, ``rtk``,
+``field``) to their records; ``resolve_scenario`` applies keyword overrides (any
 field, e.g. ``max_pings=20, n_beams=128, flavour="px4"``) and checks them.
 
 Each seed is a new field day: with ``randomise`` (the default) ``prepare_survey`` draws the
@@ -16,6 +17,13 @@ sensor errors, latencies, waves and bedforms of the day within realistic ranges
 (``tools.sim.fieldday``), except the fields the caller set explicitly (``explicit``, which
 ``resolve_scenario`` fills from the overrides). The values below are those defaults, used
 as they are when ``randomise`` is false.
+
+The conditions users reported, each on the quadrats' site and array: ``shore`` (the bed
+deepening 6.25 % across five lanes, the sonar 1.1-2.1 m above it, a downward echosounder,
+ArduPilot, an M8N), ``mud`` (a soft mud bottom), ``deep`` (3.5 m of water, 10 m range,
+25 degrees tilt, 0.9 m/s, lanes spaced to the wider swath: ``swath``), ``rtk`` (an RTK
+receiver at 5 Hz, the compass pinned 3 degrees off) and ``field`` (``wide``: all of it
+drawn per seed, ``fieldday.draw_wide``); each runs 3-5 minutes.
 
 ``hectare`` is the 2-hour benchmark survey, meant for ``tools.sim.stream`` (``simulate``
 needs a cut for it: ``STREAM_ONLY``). Its seabed cells are 2 cm instead of 1 cm: the
@@ -33,11 +41,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from seamap.errors import SeamapError
+from tools.sim.swath import lane_spacing_for, range_resolution_for
 
 # 2024-06-12T14:00:00Z: a fixed scenario start so that files never depend on the wall clock.
 DEFAULT_START_TIME = 1718200800.0
 
 FLAVOURS = ("ardupilot", "px4")
+SEABED_TYPES = ("sand", "mud", "shell", "gravel", "objects")
+GNSS_KINDS = ("m8n", "rtk")
 
 
 @dataclass(frozen=True)
@@ -112,8 +123,31 @@ class Scenario:
     """Increase of depth per metre east (m/m): a gently sloping bed."""
     seabed_slope_north: float = -0.003
     """Increase of depth per metre north (m/m)."""
+    seabed_type: str = "sand"
+    """What the bottom is (``SEABED_TYPES``; ``tools.sim.bottoms``): "sand" (rippled sand
+    with mud and shell patches), "mud" (soft mud/silt: dark, faint texture, no ripples),
+    "shell" (shell hash over muddy sand, little ripple), "gravel" (gravel and cobble
+    patches among the sand) or "objects" (smooth mud with sparse tyres, blocks, debris
+    and clumps)."""
+    soft_mud_reflectivity: float = 0.12
+    """Mean reflectivity of a soft mud/silt bottom ("mud", "objects"): about 4.5 dB below
+    the sand's 0.34 (fine, porous sediment scatters 5-10 dB less than sand near 1 MHz)."""
+    undulation_amplitude_m: float = 0.0
+    """Amplitude of the bed's long-wavelength undulation about the mean plane (metres; 0:
+    none): a shore's profile is not a plane (``bathymetry``)."""
+    undulation_wavelength_m: float = 20.0
+    """Its main wavelength (metres, 10-40)."""
+    undulation_bearing_deg: float = 0.0
+    """Grid bearing of its main wave vector (the crests run across it)."""
+    tide_rate_mps: float = 0.0
+    """The water level's rate of rise (m/s; negative: falling; 0.3 m/h = 8.3e-5 m/s). The
+    boat floats, so the sonar head and the echosounder rise with it."""
     seabed_resolution_m: float = 0.01
-    """Cell size of the reflectivity and height maps (metres)."""
+    """Cell size of the reflectivity and height maps (metres); made coarser (2, 3, 4 cm)
+    when the map would exceed ``seabed_max_cells`` (``survey.seabed_resolution``)."""
+    seabed_max_cells: int = 40_000_000
+    """Cells the seabed maps may have: painting them peaks at about 35 bytes a cell (the
+    hectare's 31 million cells: ~1.1 GB), so 40 million keeps a survey within ~1.5 GB."""
     seabed_margin_m: float = 1.0
     """Map margin beyond the farthest point the sonar can see (metres)."""
     sand_reflectivity: float = 0.34
@@ -251,6 +285,33 @@ class Scenario:
     gain_assist_db: float = 0.5
     """Standard deviation of the per-ping automatic gain change."""
 
+    # --- downward echosounder (a Ping2-class altimeter on the autopilot) ---
+    echosounder: bool = False
+    """A downward echosounder reports DISTANCE_SENSOR (and RANGEFINDER on ArduPilot)."""
+    echosounder_x_m: float = 0.2
+    """Transducer offset from the antenna, body forward (metres)."""
+    echosounder_y_m: float = 0.15
+    """Starboard (metres)."""
+    echosounder_z_m: float = 0.3
+    """Down (metres): its face 0.2 m below the waterline with the antenna 0.1 m above."""
+    echosounder_rate_hz: float = 8.0
+    """Soundings per second (a Ping2 pings 5-10 times a second at these depths)."""
+    echosounder_beam_deg: float = 30.0
+    """Full -3 dB cone of the transducer (a Ping2's 115 kHz beam is about 30 degrees): it
+    reports the nearest bottom inside it."""
+    echosounder_noise_m: float = 0.01
+    """Range noise, constant part (metres; 1 sigma)."""
+    echosounder_noise_fraction: float = 0.005
+    """Range noise, part proportional to the range (0.5 %: its range resolution)."""
+    echosounder_dropout: float = 0.03
+    """Fraction of the time the bottom is lost (aerated water behind the hull, a turn):
+    runs of ~1 s with no reading or a reading flagged with signal quality 1."""
+    echosounder_false_rate: float = 0.005
+    """Fraction of soundings that lock on weed or a fish: a short range, fair quality."""
+    echosounder_lag_s: float = 0.05
+    """From the sounding's ping to its message's time_boot_ms (processing and the serial
+    link at 115200 baud), seconds."""
+
     # --- navigation sensors ---
     flavour: str = "ardupilot"
     """Autopilot: "ardupilot" (RAW_IMU, ArduPilot scaling) or "px4" (HIGHRES_IMU, SI)."""
@@ -273,6 +334,29 @@ class Scenario:
     1); None: no outage."""
     gps_outage_duration_s: float = 20.0
     gps_vertical_sigma_m: float = 1.5
+    gnss_kind: str = "m8n"
+    """The receiver (``GNSS_KINDS``): "m8n" (the u-blox M8N's metre-level fixes above) or
+    "rtk" (a dual-frequency RTK receiver with a base: the ``rtk_*`` fields, fix_type 6,
+    dropping to RTK float, fix_type 5, now and then)."""
+    rtk_noise_m: float = 0.015
+    """RTK fixed: white noise per axis (metres; drawn 0.01-0.02)."""
+    rtk_bias_sigma_m: float = 0.008
+    """RTK fixed: the slowly wandering error per axis (metres; Gauss-Markov; drawn
+    0.005-0.012: multipath and the base's own error)."""
+    rtk_bias_tau_s: float = 120.0
+    """Its correlation time (seconds; drawn 60-300)."""
+    rtk_vertical_sigma_m: float = 0.02
+    """RTK fixed: vertical error (metres; about twice the horizontal)."""
+    rtk_lag_s: float = 0.03
+    """Age of an RTK fix at its stamp (seconds; drawn 0.02-0.05: a faster receiver and a
+    faster link than the M8N's)."""
+    rtk_float_interval_s: float = 150.0
+    """Mean time between drops to RTK float (seconds; an exponential gap: a bridge, a
+    tree line, the base's radio link fading)."""
+    rtk_float_duration_s: float = 6.0
+    """Mean length of a drop to float (seconds; drawn 2-3 times that spread)."""
+    rtk_float_sigma_m: float = 0.2
+    """RTK float: the error per axis while the ambiguities are not fixed (metres)."""
     compass_bias_deg: float = 2.0
     """Constant part of the heading error (degrees: mounting misalignment and the
     uncompensated field; drawn +-1-5)."""
@@ -324,6 +408,10 @@ class Scenario:
     max_pings: int | None = None
 
     # --- the field day ---
+    wide: bool = False
+    """With ``randomise``: also draw the site and the survey's set-up (seabed type, slope,
+    undulation, tide, depth, range, tilt, speed, ping rate, echosounder, GNSS kind, the
+    lanes; ``tools.sim.fieldday.WIDE_DAY``) from a separate stream of the seed."""
     randomise: bool = True
     """Draw the day's values (``tools.sim.fieldday.FIELD_DAY``) from the seed; false: the
     values above, exactly."""
@@ -457,7 +545,79 @@ HECTARE = Scenario(
     current_toward_deg=200.0,
 )
 
-SCENARIOS: dict[str, Scenario] = {s.name: s for s in (QUADRATS, FARM, QUADRATS_CURRENT, HECTARE)}
+SHORE = dataclasses.replace(
+    QUADRATS,
+    name="shore",
+    description=(
+        "The quadrats on a sloping shore: the bed deepens 6.25 % to the east, across five "
+        "16 m lanes 4 m apart, so the sonar runs 1.1-2.1 m above it; a downward echosounder "
+        "beside the antenna (DISTANCE_SENSOR and RANGEFINDER), ArduPilot, an M8N (about "
+        "4.5 minutes)."
+    ),
+    water_depth_m=1.8,
+    seabed_slope_east=0.0625,
+    seabed_slope_north=0.0,
+    n_lanes=5,
+    lane_spacing_m=lane_spacing_for(5.0, 1.6, 15.0, 130.0, 20.0),
+    echosounder=True,
+)
+
+MUD = dataclasses.replace(
+    QUADRATS,
+    name="mud",
+    description=(
+        "The quadrats on soft mud: a dark bottom with faint fine texture, no ripples and "
+        "very few clumps (about 3 minutes)."
+    ),
+    seabed_type="mud",
+)
+
+DEEP = dataclasses.replace(
+    QUADRATS,
+    name="deep",
+    description=(
+        "The quadrats in 3.5 m of water: 10 m range (600 lines of 1.67 cm), 25 degrees "
+        "tilt, 10 pings/s, 0.9 m/s, three 48 m lanes spaced to the wider swath (about "
+        "3.3 minutes)."
+    ),
+    water_depth_m=3.5,
+    range_m=10.0,
+    range_resolution_m=range_resolution_for(10.0),
+    tilt_deg=25.0,
+    ping_rate_hz=10.0,
+    speed_mps=0.9,
+    lane_length_m=48.0,
+    lane_spacing_m=lane_spacing_for(10.0, 3.3, 25.0, 130.0, 20.0),
+    turn_radius_m=3.0,
+)
+
+RTK = dataclasses.replace(
+    QUADRATS,
+    name="rtk",
+    description=(
+        "The quadrats with an RTK receiver (fixes at 5 Hz, 1-2 cm, now and then a few "
+        "seconds of RTK float) and a compass 3 degrees off (about 3 minutes)."
+    ),
+    gnss_kind="rtk",
+    gps_rate_hz=5.0,
+    compass_bias_deg=3.0,
+    explicit=("compass_bias_deg",),
+)
+
+FIELD = dataclasses.replace(
+    QUADRATS,
+    name="field",
+    description=(
+        "The quadrats on a field day drawn wide from the seed: seabed type, slope, "
+        "undulation, tide, depth, range, tilt, speed, ping rate, echosounder, GNSS kind "
+        "and lanes (tools.sim.fieldday.WIDE_DAY; about 3-5 minutes)."
+    ),
+    wide=True,
+)
+
+SCENARIOS: dict[str, Scenario] = {
+    s.name: s for s in (QUADRATS, FARM, QUADRATS_CURRENT, HECTARE, SHORE, MUD, DEEP, RTK, FIELD)
+}
 
 STREAM_ONLY: frozenset[str] = frozenset({HECTARE.name})
 """Scenarios too long to write whole: ``simulate`` needs ``max_pings`` or ``duration_s``
@@ -583,6 +743,28 @@ def _validate(s: Scenario) -> None:
         problems.append("skip_lanes leaves no lane to drive")
     if not 0.0 < s.tilt_deg < 60.0:
         problems.append(f"tilt_deg {s.tilt_deg} is not in (0, 60)")
+    if s.seabed_type not in SEABED_TYPES:
+        problems.append(f"seabed_type {s.seabed_type!r} is not one of {', '.join(SEABED_TYPES)}")
+    if s.gnss_kind not in GNSS_KINDS:
+        problems.append(f"gnss_kind {s.gnss_kind!r} is not one of {', '.join(GNSS_KINDS)}")
+    if abs(s.tide_rate_mps) > 1e-3:
+        problems.append(f"tide_rate_mps {s.tide_rate_mps} is beyond +-1e-3 m/s (3.6 m/h)")
+    if not 0.0 <= s.undulation_amplitude_m <= 0.5 or s.undulation_wavelength_m < 2.0:
+        problems.append("undulation_amplitude_m must be in [0, 0.5], its wavelength >= 2 m")
+    if abs(s.seabed_slope_east) > 0.3 or abs(s.seabed_slope_north) > 0.3:
+        problems.append("seabed slopes beyond 0.3 are not a survey site")
+    if s.echosounder and not (
+        0.5 <= s.echosounder_rate_hz <= 50.0 and 0.0 < s.echosounder_beam_deg < 90.0
+    ):
+        problems.append("the echosounder needs a rate in 0.5..50 Hz and a cone in (0, 90) deg")
+    if not 0.0 <= s.echosounder_dropout < 1.0 or not 0.0 <= s.echosounder_false_rate < 1.0:
+        problems.append("echosounder_dropout and echosounder_false_rate must be in [0, 1)")
+    if s.rtk_float_interval_s <= 0 or s.rtk_float_duration_s < 0 or s.rtk_bias_tau_s <= 0:
+        problems.append("rtk_float_interval_s and rtk_bias_tau_s must be positive")
+    if not 0.0 <= s.rtk_lag_s < 1.0:
+        problems.append("rtk_lag_s must be in [0, 1)")
+    if s.seabed_max_cells < 1_000_000:
+        problems.append("seabed_max_cells must be at least a million")
     if problems:
         raise SeamapError(f"simulate {s.name}: " + "; ".join(problems))
 

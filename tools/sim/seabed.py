@@ -19,12 +19,14 @@ rasters with square cells of ``resolution`` metres: row 0 is the northern edge
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+from tools.sim.bathymetry import Undulation, draw_undulation
 from tools.sim.bedforms import (
     MudPatch,
     RippleTrain,
@@ -34,6 +36,16 @@ from tools.sim.bedforms import (
     place_mud,
     ripple_train,
     smooth_noise,
+)
+from tools.sim.bottoms import (
+    SHELL_RIPPLE,
+    Debris,
+    GravelPatch,
+    gravel_patches,
+    paint_debris,
+    place_debris,
+    shell_hash,
+    soft_mud,
 )
 from tools.sim.scenarios import Scenario
 from tools.sim.structures import (
@@ -76,6 +88,7 @@ __all__ = [
 
 _MUD_RIPPLE = 0.1  # ripples left on mud, as a fraction
 _MUD_TEXTURE = 0.2  # texture left on mud, as a fraction
+_MUD_CLUMPS = 0.1  # scattered clumps left on a soft mud bottom, as a fraction
 
 
 @dataclass(frozen=True)
@@ -95,6 +108,11 @@ class Seabed:
     shell_patches: tuple[ShellPatch, ...] = ()
     mud_patches: tuple[MudPatch, ...] = ()
     ripples: tuple[RippleTrain, ...] = ()
+    seabed_type: str = "sand"
+    gravel_patches: tuple[GravelPatch, ...] = ()
+    debris: tuple[Debris, ...] = ()
+    undulation: Undulation | None = None
+    """The bed's long-wavelength shape above the mean plane (``bathymetry``), or None."""
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -109,10 +127,41 @@ class Seabed:
         return self.north - self.shape[0] * self.resolution
 
     def depth_at(self, east: FloatArray, north: FloatArray) -> FloatArray:
-        """Depth of the mean plane below the still water surface (m) at local east/north."""
-        return (
+        """Depth of the bed's smooth surface (the mean plane, raised by the undulation if
+        any; not the cm-scale relief of ``height``) below the still water surface at the
+        start of the survey (m, positive down) at local east/north."""
+        plane = (
             self.depth0 + self.slope_east * np.asarray(east) + self.slope_north * np.asarray(north)
         )
+        if self.undulation is None:
+            return plane
+        return plane - self.undulation.height(east, north)
+
+    def depth_gradient(self, east: FloatArray, north: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(d depth / d east, d depth / d north) of that smooth surface (m/m)."""
+        shape = np.broadcast(np.asarray(east), np.asarray(north)).shape
+        ge = np.full(shape, self.slope_east, np.float64)
+        gn = np.full(shape, self.slope_north, np.float64)
+        if self.undulation is not None:
+            ue, un = self.undulation.gradient(east, north)
+            ge -= ue
+            gn -= un
+        return ge, gn
+
+    def relief_at(self, east: FloatArray, north: FloatArray) -> FloatArray:
+        """The height map (m above the smooth surface) bilinearly at local points."""
+        col, row = self.pixel(east, north)
+        h, w = self.shape
+        col = np.clip(np.asarray(col, np.float64), 0.0, w - 1.0)
+        row = np.clip(np.asarray(row, np.float64), 0.0, h - 1.0)
+        c0 = np.minimum(np.floor(col).astype(np.int64), w - 2 if w > 1 else 0)
+        r0 = np.minimum(np.floor(row).astype(np.int64), h - 2 if h > 1 else 0)
+        fc, fr = col - c0, row - r0
+        c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+        z = self.height
+        top = z[r0, c0] * (1 - fc) + z[r0, c1] * fc
+        bottom = z[r1, c0] * (1 - fc) + z[r1, c1] * fc
+        return np.asarray(top * (1 - fr) + bottom * fr, np.float64)
 
     def pixel(self, east: FloatArray, north: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Fractional (col, row) raster coordinates of local east/north points."""
@@ -149,11 +198,16 @@ def _firm_ground(s: Scenario, quadrats: tuple[Quadrat, ...]) -> FloatArray:
     return np.array(circles, np.float64).reshape(-1, 3)
 
 
-def generate_seabed(
-    s: Scenario, bounds: tuple[float, float, float, float], rng: np.random.Generator
-) -> Seabed:
-    """Paint the scenario's seabed over ``bounds`` = (west, south, east, north), local
-    metres (whole metres keep the cells on a whole-metre UTM grid)."""
+def _sand(
+    s: Scenario,
+    bounds: tuple[float, float, float, float],
+    quadrats: tuple[Quadrat, ...],
+    rng: np.random.Generator,
+) -> tuple[
+    F32Array, F32Array, tuple[ShellPatch, ...], tuple[MudPatch, ...], tuple[RippleTrain, ...]
+]:
+    """Rippled sand with mud and shell patches: reflectivity and height (m) over
+    ``bounds``, the patches and the ripple trains."""
     west, south, east, north = bounds
     res = s.seabed_resolution_m
     shape = (round((north - south) / res), round((east - west) / res))
@@ -168,7 +222,6 @@ def generate_seabed(
     texture += fine * np.float32(0.10)
 
     # Smooth mud: where it lies, the ripples, roughness and texture all but vanish.
-    quadrats = quadrat_layout(s)
     mud = place_mud(rng, s.n_mud_patches, _survey_area(s, bounds), _firm_ground(s, quadrats))
     mud_mask = patch_mask(mud, e, n, rng, 0.8)
     sandy = np.float32(1.0) - mud_mask
@@ -209,9 +262,52 @@ def generate_seabed(
     texture *= np.float32(_MUD_TEXTURE) + np.float32(1.0 - _MUD_TEXTURE) * sandy
     base = np.float32(s.sand_reflectivity) * sandy + np.float32(s.mud_reflectivity) * mud_mask
     refl = base * (1.0 + texture)
-    del texture, base, sandy, mud_mask, flat
+    return refl, height, shells, mud, trains
 
-    oysters = place_oysters(s, quadrats, bounds, rng)
+
+def generate_seabed(
+    s: Scenario,
+    bounds: tuple[float, float, float, float],
+    rng: np.random.Generator,
+    shape_rng: np.random.Generator | None = None,
+) -> Seabed:
+    """Paint the scenario's seabed over ``bounds`` = (west, south, east, north), local
+    metres (whole metres keep the cells on a whole-metre UTM grid). ``rng`` draws the
+    bottom (``s.seabed_type``: sand, or one of ``bottoms``), ``shape_rng`` the
+    undulation (``bathymetry``; needed when ``s.undulation_amplitude_m`` > 0)."""
+    west, south, east, north = bounds
+    res = s.seabed_resolution_m
+    shape = (round((north - south) / res), round((east - west) / res))
+    quadrats = quadrat_layout(s)
+    kind = s.seabed_type
+    shells: tuple[ShellPatch, ...] = ()
+    mud: tuple[MudPatch, ...] = ()
+    trains: tuple[RippleTrain, ...] = ()
+    gravel: tuple[GravelPatch, ...] = ()
+    clumps = s  # the scenario the scattered clumps are placed from
+    if kind in ("sand", "shell", "gravel"):
+        bed = s
+        if kind == "shell":
+            bed = dataclasses.replace(
+                s,
+                ripple_amplitude_m=s.ripple_amplitude_m * SHELL_RIPPLE,
+                ripple2_amplitude_m=s.ripple2_amplitude_m * SHELL_RIPPLE,
+                n_shell_patches=0,
+            )
+        refl, height, shells, mud, trains = _sand(bed, bounds, quadrats, rng)
+        if kind == "shell":
+            shell_hash(refl, height, res, rng)
+        elif kind == "gravel":
+            e = (west + (np.arange(shape[1], dtype=np.float32) + 0.5) * res)[None, :]
+            n = (north - (np.arange(shape[0], dtype=np.float32) + 0.5) * res)[:, None]
+            gravel = gravel_patches(_survey_area(s, bounds), e, n, res, refl, height, rng)
+    else:  # soft mud, bare or with debris: very few clumps on it
+        refl, height = soft_mud(s.soft_mud_reflectivity, shape, res, rng)
+        clumps = dataclasses.replace(
+            s, scattered_clumps_per_m2=s.scattered_clumps_per_m2 * _MUD_CLUMPS, oyster_beds=()
+        )
+
+    oysters = place_oysters(clumps, quadrats, bounds, rng)
     canvas = Canvas(
         west,
         north,
@@ -224,9 +320,20 @@ def generate_seabed(
     paint_oysters(oysters, canvas, rng)
     paint_racks(s.racks, canvas)
     paint_quadrats(quadrats, canvas)
+    debris: tuple[Debris, ...] = ()
+    if kind == "objects":
+        debris = place_debris(_survey_area(s, bounds), _firm_ground(s, quadrats), rng)
+        paint_debris(debris, canvas)
     height += canvas.objects
     refl += canvas.alpha * (canvas.refl - refl)
     reflectivity = np.clip(np.rint(refl * 255.0), 1, 255).astype(np.uint8)
+    undulation = None
+    if s.undulation_amplitude_m > 0:
+        if shape_rng is None:
+            raise ValueError("an undulating bed needs its generator (shape_rng)")
+        undulation = draw_undulation(
+            s.undulation_amplitude_m, s.undulation_wavelength_m, s.undulation_bearing_deg, shape_rng
+        )
     return Seabed(
         reflectivity=reflectivity,
         height=height.astype(np.float32),
@@ -241,4 +348,8 @@ def generate_seabed(
         shell_patches=shells,
         mud_patches=mud,
         ripples=trains,
+        seabed_type=kind,
+        gravel_patches=gravel,
+        debris=debris,
+        undulation=undulation,
     )

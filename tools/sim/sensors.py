@@ -15,6 +15,14 @@ Models:
   per axis, ``hypot(sigma, white)``, with a +-15 % wobble; HDOP about 0.8-1.0; 12-14
   satellites. During an outage (``gps_outage_start_s``, ``gps_outage_duration_s``) the
   receiver reports no fix (fix_type 1), its last position, 0-3 satellites.
+- RTK GNSS (``gnss_kind = "rtk"``, a dual-frequency receiver with a base nearby): fixed
+  (fix_type 6) with white noise ``rtk_noise_m`` per axis, a Gauss-Markov wander
+  ``rtk_bias_sigma_m`` over ``rtk_bias_tau_s`` (multipath, the base's error), vertical
+  ``rtk_vertical_sigma_m``, fixes ``rtk_lag_s`` old; h_acc reported 10-20 mm (the model's
+  1-sigma, +-15 %, within what such receivers say in a fix). Drops to RTK float
+  (fix_type 5) for a few seconds every few minutes (``float_mask``): a 10 s Gauss-Markov
+  error of ``rtk_float_sigma_m`` per axis, three times the white noise, h_acc to match
+  (decimetres); 20-24 satellites (several constellations), HDOP about 0.6.
 - Heading: true heading + bias (``compass_bias_deg`` + a slow Gauss-Markov wander) +
   deviation ``d1 sin(psi + p1) + d2 sin(2 psi + p2)`` of the magnetic heading psi (hard and
   soft iron) + correlated noise (Gauss-Markov, ``compass_gm_sigma_deg``,
@@ -48,6 +56,10 @@ _IMU_BIAS_TAU_S = 300.0
 _GPS_VELOCITY_NOISE_MPS = 0.05
 _OUTAGE_H_ACC_M = 999.0  # what the receiver says of its accuracy without a fix
 _COMPASS_WANDER_STEP_S = 1.0
+_RTK_FLOAT_TAU_S = 10.0  # how fast a float solution wanders (s)
+_RTK_FLOAT_NOISE = 3.0  # white noise in float, as a multiple of the fixed noise
+_RTK_VELOCITY_NOISE_MPS = 0.02  # carrier-phase velocities are better than the M8N's
+_RTK_H_ACC_M = (0.010, 0.020)  # what RTK receivers report in a fix (u-blox F9P: 10-14 mm)
 
 
 def gauss_markov(
@@ -120,9 +132,97 @@ def outage_mask(s: Scenario, start: float, times: FloatArray) -> npt.NDArray[np.
     return (times >= t0) & (times < t0 + s.gps_outage_duration_s)
 
 
+def float_mask(
+    s: Scenario, start: float, times: FloatArray, rng: np.random.Generator
+) -> npt.NDArray[np.bool_]:
+    """Which of ``times`` (UNIX s) an RTK receiver spends in RTK float: episodes whose
+    gaps are exponential of mean ``rtk_float_interval_s`` and lengths uniform in 0.5-1.5
+    times ``rtk_float_duration_s``, from the log ``start`` (UNIX s)."""
+    mask = np.zeros(len(times), bool)
+    if not len(times):
+        return mask
+    t = start + float(rng.exponential(s.rtk_float_interval_s))
+    end = float(times[-1])
+    while t < end:
+        length = s.rtk_float_duration_s * float(rng.uniform(0.5, 1.5))
+        mask |= (times >= t) & (times < t + length)
+        t += length + float(rng.exponential(s.rtk_float_interval_s))
+    return mask
+
+
+def _simulate_rtk(
+    s: Scenario, site: SiteFrame, motion: Motion, times: FloatArray, rng: np.random.Generator
+) -> GpsTrack:
+    """An RTK receiver (module doc): fixed (fix_type 6) with ``rtk_noise_m`` white noise
+    and a ``rtk_bias_sigma_m`` Gauss-Markov wander, dropping to float (fix_type 5) now
+    and then with a ``rtk_float_sigma_m`` error (a Gauss-Markov process of 10 s: each
+    drop starts with a jump of decimetres, and the fix snaps back when it ends)."""
+    n = len(times)
+    seen = times - s.rtk_lag_s
+    truth = motion.at(seen)
+    bias = gauss_markov(rng, times, s.rtk_bias_sigma_m, s.rtk_bias_tau_s, (3,))
+    bias[:, 2] *= s.rtk_vertical_sigma_m / max(s.rtk_bias_sigma_m, 1e-9)
+    noise = rng.normal(0.0, s.rtk_noise_m, (n, 3))
+    floating = float_mask(s, motion.start, times, rng)
+    wander = gauss_markov(rng, times, s.rtk_float_sigma_m, _RTK_FLOAT_TAU_S, (3,))
+    bias = np.where(floating[:, None], bias + wander, bias)
+    noise = np.where(floating[:, None], noise * _RTK_FLOAT_NOISE, noise)
+    err_e = bias[:, 0] + noise[:, 0]
+    err_n = bias[:, 1] + noise[:, 1]
+    lat, lon = site.to_latlon(truth["east"] + err_e, truth["north"] + err_n)
+    alt = truth["up"] + bias[:, 2] + 2.0 * noise[:, 2]
+    vn, ve = site.rotate_grid_to_true(truth["vel_north"], truth["vel_east"])
+    vn = vn + rng.normal(0.0, _RTK_VELOCITY_NOISE_MPS, n)
+    ve = ve + rng.normal(0.0, _RTK_VELOCITY_NOISE_MPS, n)
+    wobble = 1.0 + 0.15 * np.sin(2 * math.pi * (times - times[0]) / 97.0 + rng.uniform(0, 6.3))
+    fixed_acc = np.clip(math.hypot(s.rtk_bias_sigma_m, s.rtk_noise_m) * wobble, *_RTK_H_ACC_M)
+    float_acc = math.hypot(s.rtk_float_sigma_m, s.rtk_noise_m * _RTK_FLOAT_NOISE) * wobble
+    h_acc = np.where(floating, float_acc, fixed_acc)
+    span = times - times[0]
+    satellites = 22 + np.round(2.0 * np.sin(2 * math.pi * span / 230.0)).astype(np.int64)
+    hdop = 0.6 + 0.3 * (wobble - 1.0) + rng.normal(0.0, 0.01, n)
+    fix_type = np.where(floating, 5, 6).astype(np.int64)
+    speed = np.hypot(vn, ve)
+    course = np.mod(np.arctan2(ve, vn), 2 * math.pi)
+    lost = outage_mask(s, motion.start, times)
+    if np.any(lost):
+        last = np.maximum.accumulate(np.where(lost, 0, np.arange(n)))
+        lat, lon, alt = lat[last], lon[last], alt[last]
+        err_e = np.where(lost, truth["east"][last] + err_e[last] - truth["east"], err_e)
+        err_n = np.where(lost, truth["north"][last] + err_n[last] - truth["north"], err_n)
+        fix_type[lost] = 1
+        satellites[lost] = rng.integers(0, 4, int(lost.sum()))
+        hdop[lost] = 99.99
+        h_acc[lost] = _OUTAGE_H_ACC_M
+        speed[lost] = 0.0
+        course[lost] = 0.0
+    return GpsTrack(
+        time=times,
+        antenna_time=seen,
+        antenna_east=truth["east"],
+        antenna_north=truth["north"],
+        lat=lat,
+        lon=lon,
+        alt=alt,
+        bias_east=bias[:, 0],
+        bias_north=bias[:, 1],
+        error_east=err_e,
+        error_north=err_n,
+        speed=speed,
+        course_true=course,
+        h_acc=h_acc,
+        hdop=hdop,
+        satellites=satellites,
+        fix_type=fix_type,
+    )
+
+
 def simulate_gps(
     s: Scenario, site: SiteFrame, motion: Motion, times: FloatArray, rng: np.random.Generator
 ) -> GpsTrack:
+    """The GNSS fixes at ``times`` (module doc): the M8N's, or an RTK receiver's."""
+    if s.gnss_kind == "rtk":
+        return _simulate_rtk(s, site, motion, times, rng)
     seen = times - s.gps_lag_s
     truth = motion.at(seen)
     bias = gauss_markov(rng, times, s.gps_bias_sigma_m, s.gps_bias_tau_s, (3,))

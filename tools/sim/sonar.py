@@ -28,7 +28,12 @@ leaves [-1, 1] do not reach the seabed (water column). The relief enters by one
 fixed-point step (the height under the mean-plane footprint lifts the plane, and the
 echo is placed where the cone meets the lifted plane), so raised objects lean towards
 the sonar (layover) as they do in real images. The grazing angle on the plane is
-``asin(h / r)`` with h the sonar's perpendicular altitude ``(D - m . S) / |m|``.
+``asin(h / r)`` with h the sonar's perpendicular altitude ``(D - m . S) / |m|``. An undulating bed
+(``bathymetry``) lifts the plane by its swell U where each bin's cone meets it: ``L =
+U(P(L)) / |m|`` is solved per bin by Newton's method (decimetres of swell move a
+low-grazing footprint by metres, too far for a single step); the relief then lifts it
+further by the fixed-point step above, and the grazing angle and the slope along the
+beam are taken on the undulating surface (``h - L``, the swell added to the relief).
 
 Echo intensity (linear, after the sonar's TVG), per bin:
 ``reflectivity x Lambert(local grazing) x vertical beam pattern(psi) x visibility``,
@@ -269,14 +274,46 @@ def _pixels(seabed: Seabed, fp: Footprint) -> tuple[F32Array, F32Array]:
     return col, row
 
 
+_SWELL_STEPS = 4
+_SWELL_PROBE_M = 0.01
+
+
+def _undulation_lift(model: SonarModel, pose: SonarPose, seabed: Seabed) -> F32Array | None:
+    """Per bin, the lift L (m, along the plane's normal) at which the bin's cone meets the
+    plane raised by the undulation there: the root of ``f(L) = U(P(L)) / |m| - L``, P(L)
+    the footprint on the plane raised by L, by Newton's method with the derivative taken
+    over a 1 cm probe (``_SWELL_STEPS`` steps; the step's slope bounded so that grazing
+    bins, where the surface faces away, stay put rather than jump). None without one."""
+    und = seabed.undulation
+    if und is None:
+        return None
+    m_norm = math.sqrt(1.0 + seabed.slope_east**2 + seabed.slope_north**2)
+    probe = np.float32(_SWELL_PROBE_M)
+
+    def residual(lift: F32Array | None) -> F32Array:
+        fp = footprint(model, pose, seabed, lift, angles=False)
+        return _f32(und.height(fp.east, fp.north) / m_norm)
+
+    lift = residual(None)
+    for _ in range(_SWELL_STEPS):
+        here = residual(lift)
+        ahead = residual(lift + probe)
+        slope = np.minimum((ahead - here) / probe - np.float32(1.0), np.float32(-0.2))
+        lift = lift - (here - lift) / slope
+    return lift
+
+
 def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32Array, F32Array]:
     """The noiseless echo intensity (linear, after an ideal TVG) per (range, beam), and
     the range column (n_ranges, 1), both float32."""
     border = cv2.BORDER_REPLICATE
-    # Layover, one fixed-point step: the relief under the mean-plane footprint lifts the
-    # plane the cone is cut with.
-    col, row = _pixels(seabed, footprint(model, pose, seabed, angles=False))
+    # The undulation (if any) lifts the plane the cone is cut with, solved exactly per
+    # bin; then layover, one fixed-point step: the relief under that footprint lifts it.
+    swell = _undulation_lift(model, pose, seabed)
+    col, row = _pixels(seabed, footprint(model, pose, seabed, swell, angles=False))
     lift = _f32(cv2.remap(seabed.height, col, row, cv2.INTER_LINEAR, borderMode=border))
+    if swell is not None:
+        lift += swell
     fp = footprint(model, pose, seabed, lift)
     col, row = _pixels(seabed, fp)
     refl = _f32(cv2.remap(seabed.reflectivity, col, row, cv2.INTER_LINEAR, borderMode=border))
@@ -284,7 +321,14 @@ def _mean_echo(model: SonarModel, pose: SonarPose, seabed: Seabed) -> tuple[F32A
     del col, row, lift
 
     r = _f32(model.ranges_m)[:, None]
-    h = np.float32(fp.altitude)
+    h: F32Array | np.float32 = np.float32(fp.altitude)
+    if seabed.undulation is not None:
+        # The grazing angle and the slope along the beam are taken on the undulating
+        # surface: the plane's altitude less the swell there, the swell in the relief.
+        m_norm = math.sqrt(1.0 + seabed.slope_east**2 + seabed.slope_north**2)
+        swell_here = _f32(seabed.undulation.height(fp.east, fp.north) / m_norm)
+        z += swell_here
+        h = np.maximum(np.float32(fp.altitude) - swell_here, np.float32(0.01))
     ground = np.sqrt(np.maximum(r * r - h * h, np.float32(1e-6)))
 
     # Acoustic shadows: a bin is hidden when a nearer bin of its beam is seen at a smaller

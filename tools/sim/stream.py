@@ -2,7 +2,8 @@
 
 ``survey_events(scenario, seed, **overrides)`` gives a ``SimStream`` whose ``events``
 yield ``(arrival_time, sample)`` in arrival order (UNIX s of the boat computer's clock,
-non-decreasing): ``ImuSample``, ``GnssFix``, ``HeadingSample`` and ``AttitudeSample`` as
+non-decreasing): ``ImuSample``, ``GnssFix``, ``HeadingSample``, ``AttitudeSample`` (and
+``RangeSample`` when the boat has an echosounder and the drivers convert its messages) as
 ``drivers.mavlink.read_nav_log`` reads them from the nav.tlog that ``simulate`` writes for
 the same arguments (its default "auto" sources: RAW_IMU for ArduPilot or HIGHRES_IMU for
 PX4, GPS_RAW_INT, the ATTITUDE heading), and ``Ping`` as
@@ -145,14 +146,18 @@ def _nav_tables(
     heading = _pick_table(plan, tuple(convert.HEADING_MESSAGES[n] for n in heading_names))
     attitude = _pick_table(plan, ("ATTITUDE",))
     # (A log without any plain heading would give a compass heading: not simulated.)
+    # Soundings: a downward DISTANCE_SENSOR outranks RANGEFINDER, as in the reader.
+    sounding = convert.range_from_mavlink
+    ranges = _pick_table(plan, ("DISTANCE_SENSOR", "RANGEFINDER"))
     converters: dict[str, list[_Converter]] = {}
     for table, function in (
         (attitude, convert.attitude_from_mavlink),
         (imu, convert.imu_from_mavlink),
         (gnss, convert.gnss_from_mavlink),
         (heading, convert.heading_from_mavlink),
+        (ranges, sounding),
     ):
-        if table is not None:
+        if table is not None and function is not None:
             converters.setdefault(table.name, []).append(function)
     imu_source = {m: n for n, m in convert.IMU_MESSAGES.items()}
     heading_source = {m: n for n, m in convert.HEADING_MESSAGES.items()}

@@ -15,6 +15,7 @@ overrides give byte-identical files.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time as wallclock
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ import numpy.typing as npt
 from drivers.oculus.logfile import OculusLogWriter
 from seamap.errors import SeamapError
 from tools.sim import writer
+from tools.sim.echosounder import simulate_echosounder
 from tools.sim.fieldday import draw_field_day
 from tools.sim.pings import (
     PingFrames,
@@ -62,6 +64,8 @@ _STREAMS = {
     "sonar_attitude": 10,
     "field_day": 11,
     "compass": 12,
+    "echosounder": 13,
+    "bathymetry": 14,
 }
 
 
@@ -172,6 +176,12 @@ class SurveySetup:
         imu_times = np.arange(start + 0.004, end, 1.0 / s.imu_rate_hz)
         imu_times = imu_times + imu_rng.uniform(-0.0005, 0.0005, len(imu_times))
         compass = compass_errors(s, motion, component_rng(seed, "compass"))
+        soundings = None
+        if s.echosounder:
+            echo_times = np.arange(start + 0.21, end, 1.0 / s.echosounder_rate_hz)
+            soundings = simulate_echosounder(
+                s, self.seabed, motion, echo_times, component_rng(seed, "echosounder")
+            )
         return NavStreams(
             gps=simulate_gps(s, site, motion, gps_times, component_rng(seed, "gps")),
             heading=simulate_heading(
@@ -180,6 +190,7 @@ class SurveySetup:
             imu=simulate_imu(s, site, motion, imu_times, imu_rng, compass),
             motion=motion,
             compass=compass,
+            echosounder=soundings,
         )
 
     def tlog_plan(self, streams: NavStreams) -> TlogPlan:
@@ -188,17 +199,48 @@ class SurveySetup:
         return plan_tlog(self.scenario, self.site, streams, self.start, self.end, rng)
 
 
+COARSER_CELLS_M = (0.02, 0.025, 0.04, 0.05)
+"""Cell sizes a large site's seabed maps fall back to (each divides a metre, so the cells
+stay on a whole-metre UTM grid)."""
+
+
+def seabed_resolution(s: Scenario, bounds: tuple[float, float, float, float]) -> float:
+    """The seabed maps' cell size (m): the scenario's, or the first of
+    ``COARSER_CELLS_M`` that keeps the maps within ``s.seabed_max_cells`` (a 20 m range
+    and long lanes make a site of several thousand square metres: at 1 cm that would be
+    tens of GB while painting), unless the caller pinned ``seabed_resolution_m``. The
+    sonar's bins then see a slightly smoother bed, as on the hectare."""
+    west, south, east, north = bounds
+    res = s.seabed_resolution_m
+    if "seabed_resolution_m" in s.explicit:
+        return res
+    area = (east - west) * (north - south)
+    for coarser in COARSER_CELLS_M:
+        if area / (res * res) <= s.seabed_max_cells:
+            break
+        res = max(res, coarser)
+    return res
+
+
 def prepare_survey(s: Scenario, seed: int) -> SurveySetup:
     """Everything before the files: the field day (``s`` with the seed's draws, unless
     ``s.randomise`` is false; fields in ``s.explicit`` keep their values), site, motion,
-    ping times, seabed, sonar, frames."""
+    ping times, seabed (its cells made coarser on a large site: ``seabed_resolution``),
+    sonar, frames."""
     s, field_day = draw_field_day(s, component_rng(seed, "field_day"))
     site = SiteFrame.at(s.origin_lat_deg, s.origin_lon_deg)
     survey_path, motion = simulate_motion(s, component_rng(seed, "motion"))
     plan = plan_pings(s, motion, component_rng(seed, "pings"))
-    seabed = generate_seabed(s, _seabed_bounds(s, motion), component_rng(seed, "seabed"))
+    bounds = _seabed_bounds(s, motion)
+    res = seabed_resolution(s, bounds)
+    if res != s.seabed_resolution_m:
+        s = dataclasses.replace(s, seabed_resolution_m=res)
+        field_day = {**field_day, "seabed_resolution_m": res}
+    seabed = generate_seabed(
+        s, bounds, component_rng(seed, "seabed"), component_rng(seed, "bathymetry")
+    )
     model = SonarModel.from_scenario(s, component_rng(seed, "sonar_model"))
-    frames = ping_frames(motion, model, seabed, plan)
+    frames = ping_frames(motion, model, seabed, plan, s.tide_rate_mps)
     return SurveySetup(s, seed, site, survey_path, motion, plan, seabed, model, frames, field_day)
 
 

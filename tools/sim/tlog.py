@@ -18,6 +18,10 @@ What the autopilot (sysid 1, compid 1) streams:
   and VFR_HUD (heading in whole degrees).
 - ``px4`` flavour: the same but MAV_AUTOPILOT_PX4 (AUTO.MISSION custom mode), HIGHRES_IMU
   in SI units (m/s^2, rad/s, gauss) and no RAW_IMU.
+- with an echosounder (``Scenario.echosounder``): DISTANCE_SENSOR at its rate (cm,
+  orientation 25 = MAV_SENSOR_ROTATION_PITCH_270, signal quality; ``echosounder``), and
+  on ArduPilot RANGEFINDER (metres, voltage 0) beside each; their link delays come from a
+  child stream of the tlog's generator, so the other messages keep theirs.
 
 A ground station (sysid 255, compid 190, MAV_TYPE_GCS) adds a heartbeat about once a
 second, as it does in a real log. time_boot_ms / time_usec count from the autopilot's
@@ -43,6 +47,8 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from tools.sim.echosounder import MAX_DISTANCE_M, MIN_DISTANCE_M, Soundings
+from tools.sim.rngs import child_rng
 from tools.sim.scenarios import Scenario
 from tools.sim.sensors import GRAVITY_MPS2, CompassErrors, GpsTrack, HeadingTrack, ImuTrack
 from tools.sim.site import SiteFrame
@@ -77,6 +83,7 @@ class NavStreams:
     imu: ImuTrack
     motion: Motion
     compass: CompassErrors
+    echosounder: Soundings | None = None
 
 
 @dataclass(frozen=True)
@@ -220,6 +227,9 @@ def plan_tlog(
     tables.append(_imu_table(stamper, streams.imu, px4, start, end))
     tables.append(_gps_table(stamper, streams.gps, start, end))
     tables.extend(_heading_tables(stamper, s, site, streams, start, end))
+    if streams.echosounder is not None:  # its link delays from a child stream of rng
+        link = _Stamper(s, child_rng(rng, 1))
+        tables.extend(_echosounder_tables(link, s, streams.echosounder, start, end))
     return TlogPlan(tuple(tables))
 
 
@@ -372,4 +382,44 @@ def _heading_tables(
         )
 
     tables.append(MessageTable("VFR_HUD", stamper.stamps(t), hud))
+    return tables
+
+
+def _echosounder_tables(
+    stamper: _Stamper, s: Scenario, sounding: Soundings, start: float, end: float
+) -> list[MessageTable]:
+    """DISTANCE_SENSOR (and RANGEFINDER on ArduPilot) of each sounding sent: distances in
+    cm (RANGEFINDER in m), orientation 25 (PITCH_270: looking down), type ultrasound,
+    covariance the range variance in cm^2 on PX4 (which fills it in) and 255 (unknown)
+    on ArduPilot, the cone as both fields of view (rad), signal quality 1-100."""
+    sel = _window(sounding.time, start, end) & sounding.sent
+    t = sounding.time[sel]
+    ms = stamper.boot_ms(t)
+    cm = np.clip(_i(sounding.reported_m[sel] * 100.0), 0, 65535).tolist()
+    quality = sounding.quality[sel].tolist()
+    if s.flavour == "px4":
+        covariance = np.clip(_i((sounding.noise_sigma_m[sel] * 100.0) ** 2), 0, 254).tolist()
+    else:
+        covariance = [255] * len(t)
+    fov = math.radians(s.echosounder_beam_deg)
+    low, high = round(MIN_DISTANCE_M * 100), round(MAX_DISTANCE_M * 100)
+
+    def distance(k: int) -> Any:
+        return mavlink.MAVLink_distance_sensor_message(
+            int(ms[k]), low, high, cm[k], mavlink.MAV_DISTANCE_SENSOR_ULTRASOUND, 0,
+            mavlink.MAV_SENSOR_ROTATION_PITCH_270, covariance[k], fov, fov, (0.0, 0.0, 0.0, 0.0),
+            quality[k],
+        )  # fmt: skip
+
+    tables = [MessageTable("DISTANCE_SENSOR", stamper.stamps(t), distance)]
+    if s.flavour != "px4":
+        metres = sounding.reported_m[sel].tolist()
+        tables.append(
+            MessageTable(
+                "RANGEFINDER",
+                stamper.stamps(t),
+                # A serial rangefinder: ArduPilot reports no analogue voltage.
+                lambda k: mavlink.MAVLink_rangefinder_message(metres[k], 0.0),
+            )
+        )
     return tables

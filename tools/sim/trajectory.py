@@ -13,8 +13,11 @@ crabs: the heading points along its velocity through the water (survey speed alo
 course minus the current), and the heading oscillates a few degrees about that. Waves add
 roll, pitch and heave: sums of sinusoids of 1.5-4 s periods around the chop's dominant
 period with random phases (2-3 degrees RMS of roll and pitch, a few cm of heave on a
-field day). Everything is sampled on a dense 200 Hz grid and smoothed, so velocities,
-accelerations and body rates are finite differences of smooth signals.
+field day). The tide (``tide_rate_mps``) lifts the water, and the boat with it, at a
+steady rate from the survey's start: ``up`` is above the still water surface AT THE
+START (the datum every depth in the simulator is measured from). Everything is sampled
+on a dense 200 Hz grid and smoothed, so velocities, accelerations and body rates are
+finite differences of smooth signals.
 """
 
 from __future__ import annotations
@@ -284,6 +287,8 @@ def simulate_motion(s: Scenario, rng: np.random.Generator) -> tuple[SurveyPath, 
     pitch += math.radians(s.trim_deg) * (ground_speed / s.speed_mps) ** 2
     heave = _sinusoids(rng, t, wave_periods, s.heave_m)
     up = s.antenna_height_m + heave
+    if s.tide_rate_mps:
+        up = up + s.tide_rate_mps * t  # the boat floats on the rising (falling) water
 
     vel_up = np.gradient(up, dt)
     motion = Motion(
@@ -307,6 +312,13 @@ def simulate_motion(s: Scenario, rng: np.random.Generator) -> tuple[SurveyPath, 
         path_s=dist,
     )
     return path, motion
+
+
+def water_level(s: Scenario, times: FloatArray) -> FloatArray:
+    """Height of the water surface above its level at the survey's start (m) at
+    ``times`` (UNIX s): the tide, ``tide_rate_mps`` per second (the boat's ``up`` rides
+    on it)."""
+    return s.tide_rate_mps * (np.asarray(times, np.float64) - s.start_time)
 
 
 def euler_to_matrix(heading: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:

@@ -18,7 +18,8 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
   ``meridian_convergence_deg``, ``magnetic`` (``declination_deg`` east of true north,
   ``inclination_deg`` down, ``field_mgauss``), ``seabed_plane`` (``depth_at_origin_m``
   below the still water surface at the local origin, ``slope_east``/``slope_north`` in
-  m of depth per m), ``water_surface`` (text).
+  m of depth per m, ``seabed_type``, ``undulation``: its plane waves or null),
+  ``water_surface`` (text), ``tide`` (``rate_mps``, ``rate_m_per_h``).
 - ``time``: ``start_time``, ``end_time`` (the nav log's span), ``first_ping_time``,
   ``last_ping_time``, ``autopilot_boot_time`` (time_boot_ms = 0), ``sonar_power_on_time``
   (pingStartTime = 0), ``duration_s``.
@@ -44,7 +45,12 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
   ``bias_east_m``, ``bias_north_m``, ``error_east_m``, ``error_north_m`` (grid east/north:
   reported minus the antenna at antenna_time), ``stamp_error_east_m``/``_north_m``
   (reported minus the antenna at the stamp: what the lag adds), ``h_acc_m``,
-  ``fix_type``), ``compass`` (rate, ``bias_deg`` constant part, wander, the deviation's
+  ``fix_type``; ``kind`` "m8n" or "rtk", ``rtk`` its parameters or null), ``echosounder``
+  (null, or the mount, rate, cone, noise, dropout and false-return rates, and per
+  sounding ``time``, ``ping_time``, ``transducer_east``/``_north`` UTM,
+  ``transducer_depth_m``, ``vertical_m`` (straight down to the bed), ``nearest_m`` (the
+  nearest bottom in the cone), ``reported_m`` (null: no message), ``signal_quality``,
+  ``kind``), ``compass`` (rate, ``bias_deg`` constant part, wander, the deviation's
   amplitudes, phases and ``deviation_coefficients`` A..D of ``A sin psi + B cos psi + C
   sin 2 psi + D cos 2 psi`` (psi magnetic heading), the correlated noise, white
   ``noise_deg``, and per sample ``time``, ``heading_deg`` (the true heading then),
@@ -60,8 +66,10 @@ degrees where the key says ``_deg``. "UTM" = the site's UTM zone (``site.epsg``)
   ``lat``/``lon``, ``heading_deg`` (true), ``grid_heading_deg``, ``course_deg`` (true
   course over ground), ``roll_deg``, ``pitch_deg`` (FRD), ``heave_m``, ``sonar_east``/
   ``sonar_north`` (UTM of the sonar head), ``sonar_depth_m`` (below the still water),
-  ``altitude_m`` (sonar head above the seabed's mean plane, vertically),
-  ``gain_assist_db``.
+  ``altitude_m`` (sonar head above the bed's smooth surface, the mean plane raised by any
+  undulation, vertically: tide, heave, slope and undulation in it), ``altitude_normal_m``
+  (the same along the surface's normal), ``water_level_m`` (the tide's rise since
+  start_time), ``gain_assist_db``.
 - ``features``: ``quadrat_layout`` (the paper's numbers: ``aluminium_side_m`` 0.43,
   ``pvc_side_m`` 0.62, ``row_gap_m`` 1.52 between the rows' nearest sides,
   ``frame_spacing_m`` 1.0 centre to centre, ``row_centre_distance_m``, grid
@@ -184,6 +192,8 @@ def build_truth(
             "sonar_north": r(at["sonar_north"][k] + n0, 4),
             "sonar_depth_m": r(at["sonar_depth"][k], 4),
             "altitude_m": r(at["altitude"][k], 4),
+            "altitude_normal_m": r(at["altitude_normal"][k], 4),
+            "water_level_m": r(at["water_level"][k], 5),
             "gain_assist_db": r(plan.assist_db[k], 3),
         }
         for k in range(len(plan.acquisition))
@@ -225,9 +235,18 @@ def build_truth(
                 "slope_east": s.seabed_slope_east,
                 "slope_north": s.seabed_slope_north,
                 "depth": "depth_at_origin_m + slope_east * local_east + slope_north * "
-                "local_north, metres below the still water surface",
+                "local_north - undulation(local), metres below the still water surface at "
+                "the survey's start",
+                "seabed_type": s.seabed_type,
+                "undulation": _undulation(seabed),
             },
-            "water_surface": "still water at 0 m; no tide",
+            "water_surface": "still water at 0 m at start_time; it rises at tide.rate_mps "
+            "(the boat floats on it: every depth here is below the start's surface)",
+            "tide": {
+                "rate_mps": s.tide_rate_mps,
+                "rate_m_per_h": r(s.tide_rate_mps * 3600.0, 6),
+                "level": "rate_mps * (time - start_time), metres above the start's level",
+            },
         },
         "time": {
             "start_time": r(start),
@@ -311,6 +330,7 @@ def build_truth(
             },
             "gps": _gps_section(s, streams, gps_sel, e0, n0),
             "compass": _compass_section(s, streams, hd_sel),
+            "echosounder": _echosounder_section(s, streams, (start, end), e0, n0),
             "imu": {
                 "rate_hz": s.imu_rate_hz,
                 "message": "HIGHRES_IMU" if s.flavour == "px4" else "RAW_IMU",
@@ -349,7 +369,25 @@ def _gps_section(
     if s.gps_outage_start_s is not None:
         begin = streams.motion.start + s.gps_outage_start_s
         outage = {"start_time": r(begin), "end_time": r(begin + s.gps_outage_duration_s)}
+    rtk = None
+    if s.gnss_kind == "rtk":
+        rtk = {
+            "noise_m": s.rtk_noise_m,
+            "bias_sigma_m": s.rtk_bias_sigma_m,
+            "bias_tau_s": s.rtk_bias_tau_s,
+            "vertical_sigma_m": s.rtk_vertical_sigma_m,
+            "lag_s": s.rtk_lag_s,
+            "float_interval_s": s.rtk_float_interval_s,
+            "float_duration_s": s.rtk_float_duration_s,
+            "float_sigma_m": s.rtk_float_sigma_m,
+            "model": "fix_type 6: Gauss-Markov bias_sigma_m / bias_tau_s plus white noise_m "
+            "per axis, h_acc hypot of the two +-15 % within 10-20 mm; fix_type 5 (float) "
+            "episodes: plus a 10 s Gauss-Markov error of float_sigma_m, 3 x the noise; "
+            "the M8N fields above are not used",
+        }
     return {
+        "kind": s.gnss_kind,
+        "rtk": rtk,
         "rate_hz": s.gps_rate_hz,
         "bias_model": "first-order Gauss-Markov per axis (grid east/north), stationary",
         "bias_sigma_m": s.gps_bias_sigma_m,
@@ -407,5 +445,65 @@ def _compass_section(
             "deviation_deg": r(np.degrees(hd.deviation[sel]), 4),
             "noise_deg": r(np.degrees(hd.noise[sel]), 4),
             "error_deg": r(np.degrees(hd.error[sel]), 4),
+        },
+    }
+
+
+def _undulation(seabed: Seabed) -> dict[str, Any] | None:
+    """The bed's undulation (``bathymetry``) as its plane waves, or None."""
+    und = seabed.undulation
+    if und is None:
+        return None
+    return {
+        "height": "sum_j amplitude_m_j sin(k_east_j local_east + k_north_j local_north + "
+        "phase_j), metres above the plane (the bed that much shallower)",
+        "k_east_rad_per_m": round_json(und.k_east),
+        "k_north_rad_per_m": round_json(und.k_north),
+        "amplitude_m": round_json(und.amplitude_m),
+        "phase_rad": round_json(und.phase),
+    }
+
+
+def _echosounder_section(
+    s: Scenario, streams: NavStreams, span: tuple[float, float], e0: float, n0: float
+) -> dict[str, Any] | None:
+    """truth.json's ``sensors.echosounder`` (None without one): the device and, per
+    sounding in the log's span, the truth and what was reported."""
+    sounding = streams.echosounder
+    if sounding is None:
+        return None
+    r = round_json
+    sel = (sounding.time >= span[0]) & (sounding.time < span[1])
+    reported = [None if not math.isfinite(v) else round(v, 4) for v in sounding.reported_m[sel]]
+    return {
+        "messages": ["DISTANCE_SENSOR"] + ([] if s.flavour == "px4" else ["RANGEFINDER"]),
+        "mount_x_m": s.echosounder_x_m,
+        "mount_y_m": s.echosounder_y_m,
+        "mount_z_m": s.echosounder_z_m,
+        "mount": "body FRD from the GPS antenna; the beam looks along body z (down)",
+        "rate_hz": s.echosounder_rate_hz,
+        "beam_deg": s.echosounder_beam_deg,
+        "noise": "noise_m + noise_fraction * range (1 sigma)",
+        "noise_m": s.echosounder_noise_m,
+        "noise_fraction": s.echosounder_noise_fraction,
+        "dropout": s.echosounder_dropout,
+        "false_rate": s.echosounder_false_rate,
+        "lag_s": s.echosounder_lag_s,
+        "soundings": {
+            "time": r(sounding.time[sel]),
+            "ping_time": r(sounding.ping_time[sel]),
+            "transducer_east": r(sounding.east[sel] + e0, 4),
+            "transducer_north": r(sounding.north[sel] + n0, 4),
+            "transducer_depth_m": r(sounding.depth[sel], 4),
+            "vertical_m": r(sounding.vertical_m[sel], 4),
+            "nearest_m": r(sounding.nearest_m[sel], 4),
+            "reported_m": reported,
+            "signal_quality": sounding.quality[sel].tolist(),
+            "kind": [k for k, keep in zip(sounding.kind, sel.tolist(), strict=True) if keep],
+            "meaning": "time: the message's time_boot (UNIX s); ping_time: when it pinged; "
+            "vertical_m: transducer to the bed straight down (relief in); nearest_m: the "
+            "nearest bottom in the cone (a perfect device's reading); reported_m: the "
+            "message's distance (null: no message); kind: ok, low_signal (flagged, quality "
+            "1-10, the last distance held), missing (no message), false_return (weed/fish)",
         },
     }

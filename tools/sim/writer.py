@@ -9,7 +9,10 @@ seabed.tif: uint8 GeoTIFF, single band, the site's UTM CRS, north-up, square cel
 seabed_height.tif: int16, same grid: height above the seabed's mean plane in units of
 ``height_scale_m`` (0.1 mm; also the band's GDAL scale).
 site.toml: the SiteConfig of the simulated boat (mount, altitude, ping rate, declination,
-the IMU message of the flavour): what its crew would know, not the field day's errors.
+the IMU message of the flavour, the echosounder's mount when it carries one; without
+one, the ``[echosounder]`` defaults, which act only on soundings): what its crew would
+know, not the field day's errors. ``[sonar] altitude_m`` is the survey's mean altitude
+(tide and slope included).
 area.geojson: the area the survey's lanes were planned for (``area_geojson``), what its
 crew would give ``seamap replay --area`` or the daemon for the survey's coverage and gaps.
 """
@@ -27,7 +30,13 @@ import numpy.typing as npt
 import rasterio
 from affine import Affine
 
-from seamap.config import MavlinkConfig, SiteConfig, SonarConfig, dump_config
+from seamap.config import (
+    EchosounderConfig,
+    MavlinkConfig,
+    SiteConfig,
+    SonarConfig,
+    dump_config,
+)
 from tools.sim.scenarios import Scenario
 from tools.sim.seabed import Seabed
 from tools.sim.site import SiteFrame
@@ -147,8 +156,21 @@ def site_config(s: Scenario, altitude_m: float) -> SiteConfig:
         imu_source="highres" if s.flavour == "px4" else "raw",
         declination_deg=s.declination_deg,
     )
+    # The echosounder's mount when the boat carries one. Without one the section keeps
+    # its defaults (use = true is harmless: it only acts on soundings, and none come),
+    # so that the site.toml of a survey without one is what it always was.
+    echo = base.echosounder
+    if s.echosounder:
+        echo = replace(
+            echo,
+            use=True,
+            mount_x_m=s.echosounder_x_m,
+            mount_y_m=s.echosounder_y_m,
+            mount_z_m=s.echosounder_z_m,
+        )
     assert isinstance(sonar, SonarConfig) and isinstance(mav, MavlinkConfig)
-    return replace(base, sonar=sonar, mavlink=mav)
+    assert isinstance(echo, EchosounderConfig)
+    return replace(base, sonar=sonar, mavlink=mav, echosounder=echo)
 
 
 def write_site_config(path: Path, config: SiteConfig, s: Scenario) -> None:

@@ -1,0 +1,54 @@
+"""An echosounder's depths in a .tlog reach the projection: a simulated sloping shore
+(the simulator's own echosounder, written as DISTANCE_SENSOR and RANGEFINDER) replayed
+with its site file gives every ping an altitude from the soundings, close to the truth's,
+and without them (``[echosounder] use = false``) the configured altitude, level."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from seamap.config import load_config
+from seamap.replay import replay
+from tools.sim.survey import simulate
+
+
+@pytest.fixture(scope="module")
+def shore(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("shore")
+    simulate("shore", 1, out, max_pings=80, n_beams=128)
+    return out
+
+
+def test_the_soundings_in_the_tlog_set_each_pings_altitude(shore: Path, tmp_path: Path) -> None:
+    config = load_config(shore / "site.toml")
+    assert config.echosounder.use
+    report = replay(
+        shore / "sonar.oculus", shore / "nav.tlog", None, "gps-only", tmp_path / "r", config=config
+    )
+    bottom = report["bottom"]
+    assert bottom["source"] == "echosounder"
+    assert bottom["soundings"] > 100
+    assert bottom["pings_with_plane"] == report["frames"]["read"]
+    truth = json.loads((shore / "truth.json").read_text())
+    altitudes = np.array([p["altitude_m"] for p in truth["pings"]])
+    # The soundings' altitudes span the truth's (the site file gives only their mean).
+    assert abs(bottom["altitude_m"]["median"] - float(np.median(altitudes))) < 0.06
+    assert abs(bottom["altitude_m"]["min"] - float(altitudes.min())) < 0.1
+    assert abs(bottom["altitude_m"]["max"] - float(altitudes.max())) < 0.1
+
+    off = dataclasses.replace(
+        config, echosounder=dataclasses.replace(config.echosounder, use=False)
+    )
+    plain = replay(
+        shore / "sonar.oculus", shore / "nav.tlog", None, "gps-only", tmp_path / "p", config=off
+    )
+    assert plain["bottom"] == {"source": "configured", "altitude_m": config.sonar.altitude_m}
+    # Projected at other altitudes, the same poses draw another mosaic.
+    assert (tmp_path / "r" / "mosaic.tif").read_bytes() != (
+        tmp_path / "p" / "mosaic.tif"
+    ).read_bytes()
