@@ -234,20 +234,19 @@ def sounding_points(
     poses, known = vehicle_at(times)
     ok &= known
     times, dist, poses = times[ok], dist[ok], poses[ok]
-    lever = np.array([mount.forward_m, mount.starboard_m, mount.down_m])
-    points = np.empty((times.size, 4))
-    for k in range(times.size):
-        att = tilt_at(float(times[k]))
-        roll, pitch = (att.roll_rad, att.pitch_rad) if att is not None else (0.0, 0.0)
-        # The transducer in the level, heading-aligned frame (FRD): R_LB = Ry(pitch) Rx(roll).
-        cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
-        fwd = cp * lever[0] + sp * sr * lever[1] + sp * cr * lever[2]
-        stb = cr * lever[1] - sr * lever[2]
-        down = -sp * lever[0] + cp * sr * lever[1] + cp * cr * lever[2]
-        psi = poses[k, 2]
-        east = poses[k, 0] + fwd * math.sin(psi) + stb * math.cos(psi)
-        north = poses[k, 1] + fwd * math.cos(psi) - stb * math.sin(psi)
-        points[k] = (east, north, down, dist[k])
+    tilts = [tilt_at(float(t)) for t in times]
+    roll = np.array([a.roll_rad if a is not None else 0.0 for a in tilts])
+    pitch = np.array([a.pitch_rad if a is not None else 0.0 for a in tilts])
+    # The transducer in the level, heading-aligned frame (FRD): R_LB = Ry(pitch) Rx(roll).
+    x, y, z = mount.forward_m, mount.starboard_m, mount.down_m
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    fwd = cp * x + sp * sr * y + sp * cr * z
+    stb = cr * y - sr * z
+    down = -sp * x + cp * sr * y + cp * cr * z
+    s, c = np.sin(poses[:, 2]), np.cos(poses[:, 2])
+    east = poses[:, 0] + fwd * s + stb * c
+    north = poses[:, 1] + fwd * c - stb * s
+    points = np.column_stack([east, north, down, dist]).reshape(-1, 4)
     return points, times
 
 
@@ -261,15 +260,14 @@ def slope_in_heading(plane: BottomPlane, heading_rad: float) -> tuple[float, flo
 
 
 def footprint_band(
-    altitude_m: float, tilt_rad: float, max_range_m: float, half_fan_rad: float, lit_range_m: float
+    altitude_m: float, max_range_m: float, half_fan_rad: float, lit_range_m: float
 ) -> tuple[float, float, float]:
     """The lit band's (near, far) ground range ahead of the sonar and its half width
     (metres) on a level bed ``altitude_m`` below it; ``lit_range_m`` the slant range where
-    the vertical beam first lights the bed."""
+    the vertical beam first lights the bed (the tilt is in it)."""
     h = max(altitude_m, 0.0)
     near = math.sqrt(max(lit_range_m**2 - h * h, 0.0))
     far = math.sqrt(max(max_range_m**2 - h * h, 0.0))
-    del tilt_rad  # the lit range already holds it
     return near, far, far * math.sin(min(half_fan_rad, math.pi / 2))
 
 
@@ -287,13 +285,11 @@ class SeabedAttitude:
         vehicle_at: Callable[[Array], tuple[Array, npt.NDArray[np.bool_]]],
         sonar_pose: Callable[[Array], Array],
         tilt_at: Callable[[float], Attitude | None] | None,
-        latency_s: float = 0.0,
     ) -> None:
         self.model = model
         self.vehicle_at = vehicle_at
         self.sonar_pose = sonar_pose
         self.tilt_at = tilt_at
-        self.latency_s = latency_s
         self._kept: dict[float, Attitude | None] = {}
         self.planes: dict[float, BottomPlane] = {}
         """The plane found under each ping stamp asked for (for the report)."""
@@ -301,14 +297,14 @@ class SeabedAttitude:
     def prepare(self, stamps: Array) -> None:
         """Work out the attitudes of these ping stamps at once (the poses in one call)."""
         stamps = np.asarray(stamps, float)
-        poses, known = self.vehicle_at(stamps - self.latency_s)
+        poses, known = self.vehicle_at(stamps)
         for k, stamp in enumerate(stamps):
             self._kept[float(stamp)] = self._attitude(float(stamp), poses[k] if known[k] else None)
 
     def __call__(self, stamp: float) -> Attitude | None:
         if stamp in self._kept:
             return self._kept[stamp]
-        poses, known = self.vehicle_at(np.array([stamp - self.latency_s]))
+        poses, known = self.vehicle_at(np.array([stamp]))
         attitude = self._attitude(stamp, poses[0] if known[0] else None)
         self._kept[stamp] = attitude
         return attitude
@@ -318,7 +314,7 @@ class SeabedAttitude:
         if vehicle is None:
             return tilt
         sonar = self.sonar_pose(vehicle)
-        plane = self.model.at(stamp - self.latency_s, sonar)
+        plane = self.model.at(stamp, sonar)
         if plane is None:
             return tilt
         self.planes[stamp] = plane
@@ -383,7 +379,6 @@ class SonarGeometry:
 
     down_m: float
     altitude_m: float
-    tilt_rad: float
     max_range_m: float
     half_fan_rad: float
     lit_range_m: float
@@ -391,5 +386,5 @@ class SonarGeometry:
 
     def footprint(self) -> tuple[float, float, float]:
         return footprint_band(
-            self.altitude_m, self.tilt_rad, self.max_range_m, self.half_fan_rad, self.lit_range_m
+            self.altitude_m, self.max_range_m, self.half_fan_rad, self.lit_range_m
         )

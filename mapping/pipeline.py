@@ -248,7 +248,6 @@ def _seabed(
     geometry = SonarGeometry(
         down_m=mount.down_m,
         altitude_m=mount.altitude_m,
-        tilt_rad=mount.tilt_rad,
         max_range_m=first.max_range_m,
         half_fan_rad=float(np.max(np.abs(bearings))) if bearings.size else 0.0,
         lit_range_m=lit_min_range(

@@ -58,6 +58,7 @@ def survey(scenario: str, seed: int, *, quick: bool = False, **overrides: Any) -
 
 OUTAGE: dict[str, Any] = {"gps_outage_start_s": 45.0, "gps_outage_duration_s": 25.0}
 FARM_CUT: dict[str, Any] = {"duration_s": 300.0}
+WIDE_CUT: dict[str, Any] = {"duration_s": 150.0}
 
 # The matrix. Add rows freely; overrides are any tools.sim.scenarios.Scenario field.
 SURVEYS: tuple[Survey, ...] = (
@@ -85,6 +86,21 @@ SURVEYS: tuple[Survey, ...] = (
     survey("farm", 2, flavour="px4", **FARM_CUT),
     survey("farm", 3, ping_rate_hz=2.0),
     survey("farm", 4),
+    # The field's conditions (issue 34): a sloping shore with an echosounder, soft mud, deep
+    # water at a 10 m range, an RTK receiver, and wide field days (every condition drawn
+    # per seed: seabed type, slope and tide, depth, range, tilt, speed, rate, echosounder,
+    # receiver), cut to their first 150 s (two of their three lanes). Seeds 3 and 4 (10-15
+    # Hz at a 15-17.5 m range: 1,500-2,250 frames of 1.4 million Cartesian pixels) are left
+    # out until a long range costs what it must (issue 34's lead 5): about 30 min a mode.
+    survey("shore", 1),
+    survey("shore", 2),
+    survey("shore", 3, flavour="px4"),
+    survey("mud", 1),
+    survey("mud", 2),
+    survey("deep", 1),
+    survey("rtk", 1),
+    survey("rtk", 2),
+    *(survey("field", seed, **WIDE_CUT) for seed in (1, 2, 5, 6)),
 )
 
 _ABBREVIATIONS: dict[str, Callable[[Any], str]] = {

@@ -182,38 +182,21 @@ def _simulate_rtk(
     satellites = 22 + np.round(2.0 * np.sin(2 * math.pi * span / 230.0)).astype(np.int64)
     hdop = 0.6 + 0.3 * (wobble - 1.0) + rng.normal(0.0, 0.01, n)
     fix_type = np.where(floating, 5, 6).astype(np.int64)
-    speed = np.hypot(vn, ve)
-    course = np.mod(np.arctan2(ve, vn), 2 * math.pi)
-    lost = outage_mask(s, motion.start, times)
-    if np.any(lost):
-        last = np.maximum.accumulate(np.where(lost, 0, np.arange(n)))
-        lat, lon, alt = lat[last], lon[last], alt[last]
-        err_e = np.where(lost, truth["east"][last] + err_e[last] - truth["east"], err_e)
-        err_n = np.where(lost, truth["north"][last] + err_n[last] - truth["north"], err_n)
-        fix_type[lost] = 1
-        satellites[lost] = rng.integers(0, 4, int(lost.sum()))
-        hdop[lost] = 99.99
-        h_acc[lost] = _OUTAGE_H_ACC_M
-        speed[lost] = 0.0
-        course[lost] = 0.0
-    return GpsTrack(
-        time=times,
-        antenna_time=seen,
-        antenna_east=truth["east"],
-        antenna_north=truth["north"],
-        lat=lat,
-        lon=lon,
-        alt=alt,
-        bias_east=bias[:, 0],
-        bias_north=bias[:, 1],
-        error_east=err_e,
-        error_north=err_n,
-        speed=speed,
-        course_true=course,
-        h_acc=h_acc,
-        hdop=hdop,
-        satellites=satellites,
-        fix_type=fix_type,
+    return _track(
+        s,
+        motion,
+        times,
+        rng,
+        seen,
+        truth,
+        (lat, lon, alt),
+        bias,
+        (err_e, err_n),
+        (vn, ve),
+        h_acc,
+        hdop,
+        satellites,
+        fix_type,
     )
 
 
@@ -242,13 +225,51 @@ def simulate_gps(
     )
     hdop = 0.9 + 0.5 * (wobble - 1.0) + rng.normal(0.0, 0.02, len(times))
     h_acc = sigma * wobble
+    fix_type = np.full(len(times), 3, np.int64)
+    return _track(
+        s,
+        motion,
+        times,
+        rng,
+        seen,
+        truth,
+        (lat, lon, alt),
+        bias,
+        (err_e, err_n),
+        (vn, ve),
+        h_acc,
+        hdop,
+        satellites,
+        fix_type,
+    )
+
+
+def _track(
+    s: Scenario,
+    motion: Motion,
+    times: FloatArray,
+    rng: np.random.Generator,
+    seen: FloatArray,
+    truth: dict[str, FloatArray],
+    position: tuple[FloatArray, FloatArray, FloatArray],
+    bias: FloatArray,
+    error: tuple[FloatArray, FloatArray],
+    velocity: tuple[FloatArray, FloatArray],
+    h_acc: FloatArray,
+    hdop: FloatArray,
+    satellites: npt.NDArray[np.int64],
+    fix_type: npt.NDArray[np.int64],
+) -> GpsTrack:
+    """The receiver's fixes as a ``GpsTrack``, through a GNSS outage: no fix, the
+    receiver repeats its last position (an outage starts after the first fix) and says
+    so; the error is then that position's from the antenna."""
+    lat, lon, alt = position
+    err_e, err_n = error
+    vn, ve = velocity
     speed = np.hypot(vn, ve)
     course = np.mod(np.arctan2(ve, vn), 2 * math.pi)
-    fix_type = np.full(len(times), 3, np.int64)
     lost = outage_mask(s, motion.start, times)
     if np.any(lost):
-        # No fix: the receiver repeats its last position (an outage starts after the
-        # first fix) and says so; the error is then that position's from the antenna.
         last = np.maximum.accumulate(np.where(lost, 0, np.arange(len(times))))
         lat, lon, alt = lat[last], lon[last], alt[last]
         err_e = np.where(lost, truth["east"][last] + err_e[last] - truth["east"], err_e)
