@@ -29,6 +29,12 @@ from tools.sim import simulate
 DEADLINE_S = 40.0
 IN_STEP_S = 0.030
 """Allowed error of a ping's receipt offset from its nearest GPS_RAW_INT."""
+IN_STEP_OUTLIERS = 2
+"""How many pings may miss IN_STEP_S: a hold-up of the kernel or of a thread the stall
+watcher does not see (CI once measured one ping 99 ms off on a loaded 2-core machine)."""
+OUT_OF_STEP_S = 0.25
+"""No ping may be this far off: half the 0.5 s ping period, where a ping held back or sent
+early would be stamped in its neighbour's slot."""
 SPACING_S = 0.005
 """Allowed mean error of the receipt spacing of consecutive pings."""
 STALL_S = 0.008
@@ -186,6 +192,14 @@ def play(
     return got
 
 
+def assert_in_step(errors: np.ndarray) -> None:
+    """Every ping within OUT_OF_STEP_S of its place, all but IN_STEP_OUTLIERS within
+    IN_STEP_S."""
+    off = np.abs(errors)
+    assert off.max() < OUT_OF_STEP_S, errors
+    assert np.count_nonzero(off >= IN_STEP_S) <= IN_STEP_OUTLIERS, errors
+
+
 def in_step_errors(survey: Survey, got: Received, speed: float = 1.0) -> np.ndarray:
     """Per received ping: (its receipt - the receipt of the GPS_RAW_INT nearest in sim
     time) - (the same difference in the simulation, at the playback speed), s; for the
@@ -247,8 +261,7 @@ def test_every_ping_arrives_in_step_with_the_navigation(survey: Survey) -> None:
     assert [p.ping_id for p in got.pings] == list(survey.ping_time)
     assert got.pings_sent == got.pings_total == 60 and got.pings_missed == 0
     assert set(got.gps) == set(survey.gps_time), "every GPS_RAW_INT arrived"
-    errors = in_step_errors(survey, got)
-    assert np.abs(errors).max() < IN_STEP_S, errors
+    assert_in_step(in_step_errors(survey, got))
     assert spacing_error(survey, got) < SPACING_S
 
 
@@ -271,14 +284,14 @@ def test_pings_while_the_sonar_is_disconnected_are_missed_not_queued(survey: Sur
     order = list(survey.ping_time)
     first = order.index(missing[0])
     assert missing == order[first : first + len(missing)], "one gap, while disconnected"
-    assert np.abs(in_step_errors(survey, got)).max() < IN_STEP_S
+    assert_in_step(in_step_errors(survey, got))
 
 
 def test_pty_playback_at_double_speed(survey: Survey) -> None:
     got = play(survey, mavlink="pty", speed=2.0)
     assert [p.ping_id for p in got.pings] == list(survey.ping_time)
     assert set(got.gps) == set(survey.gps_time)
-    assert np.abs(in_step_errors(survey, got, speed=2.0)).max() < IN_STEP_S
+    assert_in_step(in_step_errors(survey, got, speed=2.0))
     assert spacing_error(survey, got, speed=2.0) < SPACING_S
 
 
