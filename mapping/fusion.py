@@ -51,6 +51,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from mapping.samples import GnssFixType
 from mapping.sparse import factor_spd, solve_spd
 
 Array = npt.NDArray[np.float64]
@@ -75,6 +76,43 @@ class GnssErrorModel:
     time_offset_sigma_s: float = 0.15
     max_bracket_s: float = 3.0
     """Fixes between frames further apart than this are left out (no pose to tie)."""
+    corrected_fix_type: int = GnssFixType.DGPS
+    """Fixes of this type or better (DGPS, RTK float, RTK fixed, ...) are weighed by the
+    accuracy their receiver reports (``fix_sigmas``); plainer ones by this model alone."""
+    accuracy_floor_m: float = 0.005
+    """The smallest reported accuracy believed (per axis): a fixed RTK solution is no
+    better than its antenna's phase-centre variation and the boat's flex, a few
+    millimetres, and a receiver that says less would make its fixes rigid."""
+
+    def fix_sigmas(
+        self, accuracy_m: Array | None, fix_type: IntArray | None, count: int
+    ) -> tuple[Array, Array]:
+        """Per fix, the sigma of its white error and of the wander around it (metres, per
+        axis), from the accuracy its receiver reports (h_acc: metres, 1 sigma per axis;
+        NaN or None: not reported) and its fix type (None: unknown).
+
+        A corrected fix (``corrected_fix_type`` or better) has had the errors it shares
+        with a base station removed; what is left (carrier-phase noise, multipath, an
+        unresolved ambiguity in RTK float) the receiver measures in its own solution, and
+        its h_acc is that whole error. It does not say how the error splits into white
+        noise and wander, and neither part can be larger than the whole: each is the
+        model's, capped at the reported accuracy. An RTK fix reporting 15 mm gets 15 mm
+        of each, a float fix 0.2 m, an SBAS fix reporting 1.5 m the model's own.
+
+        An autonomous fix (2-D, 3-D) keeps the model's sigmas: its error is the
+        ionosphere's and the orbits', which the receiver cannot see; its h_acc is a guess
+        from the satellites' geometry, the one the model's sigmas already make for the
+        receiver class. So is a fix that reports no accuracy."""
+        white = np.full(count, self.white_sigma_m)
+        wander = np.full(count, self.bias_sigma_m)
+        if accuracy_m is None or fix_type is None:
+            return white, wander
+        a = np.asarray(accuracy_m, float)
+        reported = np.isfinite(a) & (a > 0) & (np.asarray(fix_type) >= self.corrected_fix_type)
+        said = np.maximum(a[reported], self.accuracy_floor_m)
+        white[reported] = np.minimum(self.white_sigma_m, said)
+        wander[reported] = np.minimum(self.bias_sigma_m, said)
+        return white, wander
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,6 +223,12 @@ class FusionData:
     headings: Array
     yaw_integral: Array
     yaw_gap: npt.NDArray[np.bool_]
+    gnss_accuracy_m: Array | None = None
+    """(g,) each fix's accuracy as its receiver reported it (h_acc: metres, 1 sigma per
+    axis; NaN where it reported none); None: no fix reported one."""
+    gnss_fix_type: IntArray | None = None
+    """(g,) each fix's type (``GnssFixType``); None: unknown. With the accuracy, what
+    weighs the fix and sizes the wander around it (``GnssErrorModel.fix_sigmas``)."""
 
 
 @dataclass(frozen=True)
@@ -291,6 +335,68 @@ def _bracket(
     w = np.where(span > 0, (query - times[k]) / np.where(span > 0, span, 1.0), 0.0)
     usable = (w >= -0.05) & (w <= 1.05) & (span <= max_bracket_s)
     return k.astype(np.int64), np.clip(w, 0.0, 1.0), usable
+
+
+def _knot_scales(knot_times: Array, spacing_s: float, fix_times: Array, fix_scales: Array) -> Array:
+    """Per GNSS bias knot, the largest wander sigma (in units of the model's
+    ``bias_sigma_m``: ``fix_scales``, per fix) of the fixes whose bias it helps
+    interpolate (those within one spacing of it): a knot beside an RTK-float fix may
+    wander as far as that fix says. Knots no fix touches (an outage) take the scale of
+    their nearest touched neighbours, linear in time; 1 with no fix at all."""
+    n = knot_times.size
+    if fix_times.size == 0:
+        return np.ones(n)
+    kb = np.clip(np.floor((fix_times - knot_times[0]) / spacing_s), 0, n - 2).astype(np.int64)
+    out = np.zeros(n)
+    np.maximum.at(out, kb, fix_scales)
+    np.maximum.at(out, kb + 1, fix_scales)
+    touched = out > 0
+    if not touched.all():
+        out = np.interp(knot_times, knot_times[touched], out[touched])
+    return out
+
+
+def _rebracket_threshold(times: Array, data: FusionData, white_m: Array) -> float:
+    """How far (s) the estimated time offset may leave the one the fixes were bracketed
+    at before they are bracketed again (``Fusion.solve``): half a frame interval, where
+    the fixes are sharper (their median white sigma, metres) than the motion between
+    frames (the boat's median speed over 10 s of fixes, above their noise, times the
+    median frame interval). Only there does a fix extrapolated beyond its bracket give a
+    lever that fits noise; a metre-class fix is never bracketed again, as it never was."""
+    if times.size < 2 or data.gnss_times.size < 2:
+        return math.inf
+    interval = float(np.median(np.diff(times)))
+    later = np.searchsorted(data.gnss_times, data.gnss_times + _SPEED_BASELINE_S)
+    has = later < data.gnss_times.size
+    if not has.any():
+        return math.inf
+    dt = data.gnss_times[later[has]] - data.gnss_times[has]
+    moved = np.hypot(*(data.gnss_xy[later[has]] - data.gnss_xy[has]).T)
+    speed = float(np.median(moved / dt))
+    return 0.5 * interval if float(np.median(white_m)) < speed * interval else math.inf
+
+
+_SPEED_BASELINE_S = 10.0
+
+
+def _bias_steps(model: GnssErrorModel, knot_scales: Array) -> tuple[Array, Array]:
+    """The GNSS bias process between consecutive knots: b_k+1 = rho_k b_k + w_k, with
+    w_k's sigma (both per knot pair; metres). The bias's sigma at knot k is
+    s_k = bias_sigma_m * knot_scales[k]; between knots of equal s it is the stationary
+    first-order Gauss-Markov process (Farrell 2008, Sec. 4.9): rho = phi = exp(-h / tau),
+    sigma_w = s sqrt(1 - phi^2). Where the receiver reports its accuracy changing, the
+    process keeps s_k as the bias's sigma at every knot: a worsening (RTK fixed to float)
+    adds an independent error, rho = phi and sigma_w^2 = s_k+1^2 - phi^2 s_k^2; an
+    improvement (float back to fixed) leaves the old error behind in proportion, rho =
+    phi s_k+1 / s_k and sigma_w = s_k+1 sqrt(1 - phi^2): a receiver that reports
+    centimetres again has let go of its decimetres."""
+    phi = math.exp(-model.knot_spacing_s / model.bias_tau_s)
+    before, after = knot_scales[:-1], knot_scales[1:]
+    rho = phi * np.minimum(1.0, after / before)
+    # In units of bias_sigma_m, so that a constant scale of 1 gives the stationary
+    # process's sigma to the last bit.
+    variance = after * after - (rho * before) * (rho * before)
+    return rho, model.bias_sigma_m * np.sqrt(np.maximum(variance, 1e-12 * after * after))
 
 
 def compass_basis(psi: Array) -> tuple[Array, Array]:
@@ -428,6 +534,16 @@ class Fusion:
         gm = self.params.gyro
         n_gyro = max(2, math.ceil((t1 - t0) / gm.knot_spacing_s) + 1)
         self.gyro_knot_times: Array = t0 + np.arange(n_gyro, dtype=np.float64) * gm.knot_spacing_s
+        # Each fix's white sigma and the wander's sigma at the knots around it, from the
+        # accuracy its receiver reports; the wander's in units of bias_sigma_m.
+        self._fix_white, wander = g.fix_sigmas(
+            data.gnss_accuracy_m, data.gnss_fix_type, data.gnss_times.size
+        )
+        self._knot_scale = _knot_scales(
+            self.knot_times, g.knot_spacing_s, data.gnss_times, wander / g.bias_sigma_m
+        )
+        self._bracket_offset_s = g.time_offset_s
+        self._rebracket_s = _rebracket_threshold(self.times, data, self._fix_white)
         self.layout = _Layout(n if rigid is None else rigid.n_groups, n_knots, n_gyro)
         self._frame_layout = _Layout(n, n_knots, n_gyro)
         # Gyro factors between consecutive frames with a known integral. Rigid groups
@@ -471,14 +587,18 @@ class Fusion:
         # GNSS fixes.
         d = self.data
         if d.gnss_times.size and n >= 2:
-            # The frames bracketing each fix are chosen at the prior time offset, once: the
+            # The frames bracketing each fix are chosen at a reference offset (the prior's,
+            # until the estimate leaves it by half a frame interval: ``solve``): the
             # estimated offset moves the fix along that bracket (linearly, beyond it if it
             # must). Re-bracketing at each iteration made the problem jump between frame
-            # intervals and Gauss-Newton wander by millimetres without converging.
-            reference = p.gnss.time_offset_s
+            # intervals and Gauss-Newton wander by millimetres without converging; never
+            # re-bracketing let centimetre fixes, extrapolated brackets away, be met by
+            # the brackets' frames moving a fraction as far (a lever that fits noise).
+            reference = self._bracket_offset_s
             query = d.gnss_times - reference
             k, w, usable = _bracket(self.times, query, p.gnss.max_bracket_s)
             k, w, z, tq = k[usable], w[usable], d.gnss_xy[usable], d.gnss_times[usable]
+            white = self._fix_white[usable]
             if k.size:
                 k1 = k + 1
                 w = w - (offset - reference) / np.maximum(self.times[k1] - self.times[k], 1e-6)
@@ -488,33 +608,33 @@ class Fusion:
                 ).astype(np.int64)
                 u = np.clip((tq - self.knot_times[kb]) / p.gnss.knot_spacing_s, 0.0, 1.0)
                 bxy = (1 - u)[:, None] * bias[kb] + u[:, None] * bias[kb + 1]
-                inv = 1.0 / p.gnss.white_sigma_m
-                start = b.block("gnss", inv * (pos + bxy - z))
+                per_m = 1.0 / white
+                start = b.block("gnss", per_m[:, None] * (pos + bxy - z))
                 m = k.size
                 span = self.times[k1] - self.times[k]
                 velocity = (poses[k1, :2] - poses[k, :2]) / np.maximum(span, 1e-6)[:, None]
                 for axis in range(2):
                     rows = start + 2 * np.arange(m) + axis
-                    b.add(rows, 3 * k + axis, inv * (1 - w))
-                    b.add(rows, 3 * k1 + axis, inv * w)
-                    b.add(rows, lay.bias0 + 2 * kb + axis, inv * (1 - u))
-                    b.add(rows, lay.bias0 + 2 * (kb + 1) + axis, inv * u)
-                    b.add(rows, np.full(m, lay.offset), -inv * velocity[:, axis])
+                    b.add(rows, 3 * k + axis, per_m * (1 - w))
+                    b.add(rows, 3 * k1 + axis, per_m * w)
+                    b.add(rows, lay.bias0 + 2 * kb + axis, per_m * (1 - u))
+                    b.add(rows, lay.bias0 + 2 * (kb + 1) + axis, per_m * u)
+                    b.add(rows, np.full(m, lay.offset), -per_m * velocity[:, axis])
 
-        # The bias as a Gauss-Markov process between knots, stationary at the first.
+        # The bias as a Gauss-Markov process between knots, its sigma at each knot the
+        # model's scaled by the reported accuracy there (``_bias_steps``), stationary at
+        # the first.
         g = p.gnss
-        phi = math.exp(-g.knot_spacing_s / g.bias_tau_s)
-        step_sigma = g.bias_sigma_m * math.sqrt(max(1.0 - phi * phi, 1e-12))
         nk = lay.n_knots
-        start = b.block("bias_process", (bias[1:] - phi * bias[:-1]) / step_sigma)
+        rho, bias_step = _bias_steps(g, self._knot_scale)
+        start = b.block("bias_process", (bias[1:] - rho[:, None] * bias[:-1]) / bias_step[:, None])
         for axis in range(2):
             rows = start + 2 * np.arange(nk - 1) + axis
-            b.add(rows, lay.bias0 + 2 * np.arange(1, nk) + axis, np.full(nk - 1, 1 / step_sigma))
-            b.add(
-                rows, lay.bias0 + 2 * np.arange(nk - 1) + axis, np.full(nk - 1, -phi / step_sigma)
-            )
-        start = b.block("bias_prior", bias[0] / g.bias_sigma_m)
-        b.add(start + np.arange(2), lay.bias0 + np.arange(2), np.full(2, 1 / g.bias_sigma_m))
+            b.add(rows, lay.bias0 + 2 * np.arange(1, nk) + axis, 1 / bias_step)
+            b.add(rows, lay.bias0 + 2 * np.arange(nk - 1) + axis, -rho / bias_step)
+        first_sigma = g.bias_sigma_m * self._knot_scale[0]
+        start = b.block("bias_prior", bias[0] / first_sigma)
+        b.add(start + np.arange(2), lay.bias0 + np.arange(2), np.full(2, 1 / first_sigma))
 
         # Compass headings.
         cm = p.compass
@@ -673,6 +793,11 @@ class Fusion:
             step = solve_spd(jac.T @ jac, -(jac.T @ residual))
             x = x + step
             x[2 : 3 * lay.n : 3] %= 2 * math.pi
+            if abs(x[lay.offset] - self._bracket_offset_s) > self._rebracket_s:
+                # The fixes have slid half a frame along their brackets: choose them
+                # again at the estimate (a few times a survey, not every iteration).
+                self._bracket_offset_s = float(x[lay.offset])
+                continue
             if float(np.max(np.abs(step[: 3 * lay.n]), initial=0.0)) < p.tolerance:
                 break
         residual, jac, kinds = self._build(x, constraints, weights)

@@ -19,15 +19,19 @@ import numpy.typing as npt
 from mapping.ekf import PSI, STATE_SIZE, EkfParams, ImuInput, NavFilter, level_imu
 from mapping.geo import LocalFrame, wrap_pi
 from mapping.polar import Attitude
-from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample
+from mapping.samples import AttitudeSample, GnssFix, GnssFixType, HeadingSample, ImuSample
 
 Array = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
 class PositionFix:
-    """A GNSS fix in the local frame: metres east/north, sigma (m); velocity m/s east/north
-    (NaN when unknown)."""
+    """A GNSS fix in the local frame: metres east/north, sigma (m, the filter's: floored,
+    or from HDOP or a default when the receiver reports no accuracy); velocity m/s
+    east/north (NaN when unknown); h_acc_m: the receiver's own reported horizontal
+    accuracy (1 sigma per axis, metres, not floored; NaN when it reported none) and
+    fix_type its fix type (``GnssFixType``), by which the survey-end fusion weighs the
+    fix."""
 
     time: float
     x: float
@@ -35,6 +39,8 @@ class PositionFix:
     sigma_m: float
     vx: float = math.nan
     vy: float = math.nan
+    h_acc_m: float = math.nan
+    fix_type: int = GnssFixType.FIX_3D
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,8 +129,18 @@ def prepare_inputs(
             ):
                 course = frame.true_to_grid(fix.course_rad, fix.lat_deg, fix.lon_deg)
                 vx, vy = fix.speed_mps * math.sin(course), fix.speed_mps * math.cos(course)
+            h_acc = fix.h_acc_m if fix.h_acc_m is not None and fix.h_acc_m > 0 else math.nan
             positions.append(
-                PositionFix(fix.time, float(x), float(y), position_sigma(fix, params), vx, vy)
+                PositionFix(
+                    fix.time,
+                    float(x),
+                    float(y),
+                    position_sigma(fix, params),
+                    vx,
+                    vy,
+                    h_acc,
+                    int(fix.fix_type),
+                )
             )
 
     headings: list[HeadingFix] = []

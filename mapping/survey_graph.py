@@ -106,17 +106,25 @@ class GraphParams:
 
 def fusion_data(inputs: NavInputs, frame_times: Array, latency_s: float) -> FusionData:
     """Measurements for ``mapping.fusion`` from the filter inputs: GNSS fixes and grid
-    headings as they are, and the levelled gyro yaw rate integrated to each frame's
-    acquisition time (trapezoidal, radians clockwise)."""
+    headings as they are (each fix with the accuracy and fix type its receiver reported,
+    by which an RTK fix is weighed: ``GnssErrorModel.fix_sigmas``), and the levelled gyro
+    yaw rate integrated to each frame's acquisition time (trapezoidal, radians
+    clockwise)."""
     gnss_t = np.array([f.time for f in inputs.positions], float)
     gnss_xy = np.array([(f.x, f.y) for f in inputs.positions], float).reshape(-1, 2)
+    accuracy = np.array([f.h_acc_m for f in inputs.positions], float)
+    fix_type = np.array([int(f.fix_type) for f in inputs.positions], np.int64)
     head_t = np.array([h.time for h in inputs.headings], float)
     head = np.array([h.heading for h in inputs.headings], float)
     t = np.array([s.time for s in inputs.imu], float)
     rate = np.array([s.yaw_rate_rps for s in inputs.imu], float)
     integral = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
     yaw, gap = gyro_at_frames(t, integral, frame_times, latency_s)
-    return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+    if not np.isfinite(accuracy).any():
+        return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+    return FusionData(
+        gnss_t, gnss_xy, head_t, head, yaw, gap, gnss_accuracy_m=accuracy, gnss_fix_type=fix_type
+    )
 
 
 def gyro_at_frames(
