@@ -47,11 +47,25 @@ class PreprocessParams:
     clahe_tiles: int = 16
     blur: bool = False
     res_m: float = 0.02
-    """Cartesian pixel size (metres) of the frames that are blended into the mosaic."""
+    """Cartesian pixel size (metres) of the frames that are blended into the mosaic (and
+    registered for loop closures) while the range lines are ``cell_reference_resolution_m``
+    apart or less. The mosaic's own pixel is ``PipelineParams.mosaic_res_m``, whatever the
+    range."""
     registration_res_m: float = 0.02
-    """Pixel size of the frames that are registered. 3 cm halves the FFT work, but on
-    the simulator it adds a small yaw bias that drifts the FMT-only chain by 4 degrees a
-    minute (against 1 at 2 cm): accuracy first."""
+    """Pixel size of the frames that are registered, likewise. 3 cm halves the FFT work,
+    but on the simulator at a 5 m range it adds a small yaw bias that drifts the FMT-only
+    chain by 4 degrees a minute (against 1 at 2 cm): accuracy first."""
+    cell_reference_resolution_m: float = 0.01
+    """The sonar's range resolution (m, its range lines' spacing) up to which the frames
+    keep ``res_m`` and ``registration_res_m``; coarser lines (a longer range) make both
+    cells grow in proportion (``ground_cell_m``). 1 cm: the M1200d's lines up to a 6 m
+    range, at which those cells and every pixel-sized setting (tapers, low-pass, peak
+    radius, variance window) were chosen and measured (the quadrats, shore, mud and RTK
+    surveys at 5 m). Measured on deep seed 1 (10 m range, 1.67 cm lines, single-stage;
+    2 cm cells, then 3.3 cm): lanes RMS 13.7 -> 10.2 cm, quadrat spacing 8.5 -> 3.0 cm,
+    10 s relative error 11.5 -> 14.4 cm and 0.27 -> 0.29 degrees, 0.77 -> 0.31 s a frame.
+    Cells in proportion to the range instead (4 cm) were cheaper (0.20 s) but drifted
+    more: 10 s relative error 20.6 cm, heading error 0.64 degrees against 0.34."""
     taper_px: int = 10
     vertical_aperture_deg: float = 20.0
     """Vertical beam width: with tilt and altitude it says where the seabed is lit."""
@@ -97,6 +111,30 @@ def lit_min_range(
         return 0.0
     steepest = math.radians(min(tilt_deg + aperture_deg / 2.0 - margin_deg, 89.0))
     return altitude_m / math.sin(steepest) if steepest > 0 else 0.0
+
+
+def ground_cell_m(res_m: float, range_resolution_m: float, reference_m: float) -> float:
+    """The Cartesian cell (metres) of a fan whose range lines are ``range_resolution_m``
+    apart: ``res_m`` for lines up to ``reference_m``, ``res_m`` times their ratio for
+    coarser ones, to the millimetre (lines a hair coarser keep the reference's cell).
+
+    The sonar's frame is nearly the same at every range: a fixed fan of beams (0.6 degrees
+    wide at 1.2 MHz: a cross-range cell of r * 0.0105 rad at range r) and a few hundred
+    range lines (the M1200d keeps about range / 600 beyond 6 m; below, its 1.2 MHz pulse
+    keeps them at about 1 cm), so its resolution grows with the range on both axes
+    once the lines do. A cell in proportion to the range lines keeps a frame's pixels per
+    range line (a 2 cm cell is 2 lines of 1 cm at a 5 m range, 2 of 1.67 cm at 10 m) and
+    its pixel count and FFT sizes within (600 / 500)^2 = 1.44 times the 5 m fan's, where
+    a fixed cell makes them grow with the square of the range (a 10 m fan at 2 cm has 4.2
+    times a 5 m fan's pixels, a 17.5 m fan 13 times). The cross-range cell at the far
+    edge stays coarser than the pixel (10.5 cm at 10 m against 3.3 cm). Pixel-sized
+    settings (the registration's taper, low-pass and peak radius, blending's variance
+    window) keep their meaning relative to the sonar's resolution; the registration's
+    yaw, a pixel's error over lever arms that grow with the range, errs less than at
+    5 m, and its translation errs as the cell grows."""
+    if range_resolution_m <= reference_m:
+        return res_m
+    return max(res_m, round(res_m * range_resolution_m / reference_m, 3))
 
 
 def equalize_rows(polar: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -146,16 +184,22 @@ class Preprocessor:
         self.min_range_m = lit_min_range(
             self.fan.altitude_m, self.tilt_deg, p.vertical_aperture_deg, p.near_margin_deg
         )
+        # The cells at this fan's range lines (metres): blending's and registration's.
+        lines = self.fan.range_resolution_m
+        self.res_m = ground_cell_m(p.res_m, lines, p.cell_reference_resolution_m)
+        self.registration_res_m = ground_cell_m(
+            p.registration_res_m, lines, p.cell_reference_resolution_m
+        )
         if self.grid is None:
-            self.grid = fan_grid(self.fan, p.res_m, self.min_range_m)
+            self.grid = fan_grid(self.fan, self.res_m, self.min_range_m)
         self.projection = PingProjection(self.fan, self.grid, self.min_range_m)
         self.tables: CartesianTables = self.projection.level
         self.weight = hamming_taper(self.tables.mask, p.taper_px)
         self.fan_weight = self._fan_weight(self.tables)
-        if p.registration_res_m == p.res_m:
+        if self.registration_res_m == self.res_m:
             self.registration_grid, self.registration_projection = self.grid, self.projection
         else:
-            self.registration_grid = fan_grid(self.fan, p.registration_res_m, self.min_range_m)
+            self.registration_grid = fan_grid(self.fan, self.registration_res_m, self.min_range_m)
             self.registration_projection = PingProjection(
                 self.fan, self.registration_grid, self.min_range_m
             )

@@ -64,7 +64,11 @@ def _simulate_into(
     as an Oculus log, as the daemon records them (closed before "end")."""
     from drivers.oculus.logfile import OculusLogWriter
     from tools.sim.stream import survey_events
+    from tools.sim.swath import range_resolution_for
 
+    if "range_m" in overrides and "range_resolution_m" not in overrides:
+        # A range set on the sonar brings its range resolution (about range / 600 lines).
+        overrides = {**overrides, "range_resolution_m": range_resolution_for(overrides["range_m"])}
     try:
         with contextlib.ExitStack() as stack:
             log = None if record is None else stack.enter_context(OculusLogWriter(record))
@@ -194,6 +198,8 @@ class BenchResult:
     spill_written_mb: float = 0.0
     """What the live engine wrote to its tile spill (the daemon's disk traffic)."""
     final_pass_s: float | None = None
+    range_m: float = math.nan
+    """The sonar's range in the pings (m): a frame's cost depends on it."""
 
     @property
     def fps(self) -> float:
@@ -206,6 +212,7 @@ class BenchResult:
     def _fields(self) -> dict[str, Any]:
         return {
             "scenario": self.scenario,
+            "range_m": self.range_m,
             "frames": self.frames,
             "frames_mapped": self.frames_mapped,
             "frames_rejected": self.frames_rejected,
@@ -287,6 +294,7 @@ def run_bench(
     engine_s = 0.0
     stall = 0.0
     frames = 0
+    range_m = math.nan
     for _, sample in stream.events():
         started = time.perf_counter()
         engine.add(sample)
@@ -295,6 +303,7 @@ def run_bench(
         stall = max(stall, spent)
         if isinstance(sample, Ping):
             frames += 1
+            range_m = sample.max_range_m
             ping_time.append(sample.time)
             processing.append(spent)
             if frames % 200 == 0:
@@ -349,6 +358,7 @@ def run_bench(
         memory_samples=memory,
         spill_written_mb=spill_written,
         final_pass_s=final_s,
+        range_m=range_m,
     )
 
 
@@ -361,7 +371,8 @@ def _growth(value: float | None) -> str:
 def format_table(result: BenchResult) -> str:
     j = result.as_json()
     lines = [
-        f"seamap bench: {result.scenario}, {result.frames} frames "
+        f"seamap bench: {result.scenario} at a {result.range_m:.3g} m range, "
+        f"{result.frames} frames "
         f"({result.frames_mapped} mapped, {result.frames_rejected} rejected, "
         f"{result.frames_skipped} skipped)",
         "",

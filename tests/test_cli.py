@@ -134,6 +134,17 @@ def test_bench_reports_the_numbers_we_steer_by(tmp_path: Path) -> None:
     assert report["memory_samples"][-1][0] == 40
     assert all(rss > 0 for _, rss in report["memory_samples"])
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert report["range_m"] == pytest.approx(5.0)
+
+
+def test_bench_runs_at_the_range_asked_for() -> None:
+    # The cost of a frame at a long range (issue 34): the pings come at 10 m, with the
+    # M1200d's range lines there (600 of 1.67 cm).
+    result = seamap("bench", "--pings", "10", "--beams", "64", "--range", "10", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["frames"] == 10
+    assert report["range_m"] == pytest.approx(10.0, abs=0.02)
 
 
 @pytest.mark.parametrize(
