@@ -5,7 +5,8 @@ tide, and a wrong altitude is a wrong ground range everywhere in the fan (at 2.5
 slant range, 1.6 m of altitude assumed against 1.1 m true puts the seabed about 0.3 m
 off). This module gives, for each ping, the plane of the seabed under the sonar, from the
 best source there is: a downward echosounder's soundings (``RangeSample``) placed in the
-local frame by the navigation; else the configured altitude on a level bed.
+local frame by the navigation; else the sonar's own, where its vertical beam first lights
+the bed (``mapping.sonar_depth``); else the configured altitude on a level bed.
 
 Soundings (frames and units: local east/north metres, depth metres down from the GPS
 antenna's level; heading clockwise from grid north). A Ping2-class echosounder's beam
@@ -33,15 +34,16 @@ under the level sonar position less the sonar's own depth below the antenna (its
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from mapping.polar import Attitude
-from mapping.samples import RangeSample
+from mapping.samples import Ping, RangeSample
+from mapping.sonar_depth import SonarDepthParams, SonarHead, sonar_soundings
 
 Array = npt.NDArray[np.float64]
 
@@ -64,7 +66,11 @@ class BottomParams:
 
     use_echosounder: bool = True
     """Take the altitude and slope from a downward echosounder's soundings when the
-    navigation log has them (else the configured altitude, level)."""
+    navigation log has them."""
+    use_sonar: bool = True
+    """Else take them from the sonar's own pings (``mapping.sonar_depth``); else the
+    configured altitude, level."""
+    sonar: SonarDepthParams = field(default_factory=SonarDepthParams)
     echosounder: EchosounderMount = EchosounderMount()
     sounding_sigma_m: float = 0.04
     """One sounding's error as a depth under the footprint: a Ping2's 0.5 % of range and
@@ -105,6 +111,8 @@ class BottomPlane:
     slope_east: float
     slope_north: float
     soundings: int
+    heave_m: float = 0.0
+    """The boat's heave at the ping (m, up), in ``altitude_m``."""
 
 
 class BottomModel:
@@ -124,10 +132,19 @@ class BottomModel:
         sonar_down_m: float,
         footprint: tuple[float, float, float],
         params: BottomParams,
+        source: str = "echosounder",
     ) -> None:
         self.points = np.asarray(points, float).reshape(-1, 4).copy()
         self.times = np.asarray(times, float)
-        self.heave = _heave(self.times, self.points[:, 2] + self.points[:, 3], params)
+        self.source = source
+        """"echosounder" or "sonar". The sonar's soundings of one ping lie across a fan
+        metres wide, on a slope at depths decimetres apart: the heave is told from each
+        ping's median (``_ping_heave``)."""
+        self.heave = (
+            _heave(self.times, self.points[:, 2] + self.points[:, 3], params)
+            if source == "echosounder"
+            else _ping_heave(self.times, self.points[:, 2], params)
+        )
         """The boat's heave at each sounding (m, up), taken out of the depths below."""
         self.points[:, 2] -= self.heave
         order = np.argsort(self.times, kind="stable")
@@ -144,7 +161,12 @@ class BottomModel:
 
     def heave_at(self, time: float) -> float:
         """The boat's heave (m, up) at ``time``: the soundings' within
-        ``heave_smoothing_s`` of it, averaged (0 where there are none)."""
+        ``heave_smoothing_s`` of it, averaged (0 where there are none); the sonar's,
+        sounded some pings apart, between the pings sounded."""
+        if self.source == "sonar":
+            if not self._heave_t.size:
+                return 0.0
+            return float(np.interp(time, self._heave_t, self._heave_v))
         half = 0.5 * self.params.heave_smoothing_s
         a = int(np.searchsorted(self._heave_t, time - half, side="left"))
         b = int(np.searchsorted(self._heave_t, time + half, side="right"))
@@ -171,13 +193,13 @@ class BottomModel:
         pts = self.points[index]
         dt = self.times[index] - time
         # depth = z0 + g_e dx + g_n dy + tau dt; priors on g and tau (z0 free).
-        design = np.column_stack(
-            [np.ones(len(index)), pts[:, 0] - centre[0], pts[:, 1] - centre[1], dt]
-        )
+        columns = [np.ones(len(index)), pts[:, 0] - centre[0], pts[:, 1] - centre[1], dt]
+        prior = [0.0, p.slope_sigma**-2, p.slope_sigma**-2, p.tide_rate_sigma_mps**-2]
+        design = np.column_stack(columns)
         spatial = np.exp(-0.5 * (distance[near] / self.radius_m) ** 2)
-        prior_info = np.diag([0.0, p.slope_sigma**-2, p.slope_sigma**-2, p.tide_rate_sigma_mps**-2])
+        prior_info = np.diag(prior)
         robust = np.ones(len(index))
-        solution = np.zeros(4)
+        solution = np.zeros(design.shape[1])
         for _ in range(3):
             # The nearest bottom in the cone is the perpendicular: straight below the
             # transducer it lies sqrt(1 + |g|^2) times deeper (g from the pass before).
@@ -189,10 +211,11 @@ class BottomModel:
             robust = 1.0 / (1.0 + residual * residual)
         z0, g_e, g_n = solution[:3]
         below = z0 + g_e * (x - centre[0]) + g_n * (y - centre[1])
-        altitude = below - self.sonar_down_m + self.heave_at(time)
+        heave = self.heave_at(time)
+        altitude = below - self.sonar_down_m + heave
         if not math.isfinite(altitude) or altitude <= 0.0:
             return None
-        return BottomPlane(float(altitude), float(g_e), float(g_n), len(index))
+        return BottomPlane(float(altitude), float(g_e), float(g_n), len(index), heave)
 
 
 def _heave(times: Array, depth: Array, params: BottomParams) -> Array:
@@ -214,6 +237,16 @@ def _heave(times: Array, depth: Array, params: BottomParams) -> Array:
     residual[np.abs(residual) > spread] = 0.0
     heave[order] = residual
     return heave
+
+
+def _ping_heave(times: Array, depth: Array, params: BottomParams) -> Array:
+    """The boat's heave (m, up) at each of the sonar's soundings: ``_heave`` of each
+    ping's median depth (its soundings share its stamp), given to its soundings."""
+    stamps, ping_of = np.unique(times, return_inverse=True)
+    order = np.argsort(ping_of, kind="stable")
+    groups = np.split(depth[order], np.cumsum(np.bincount(ping_of, minlength=stamps.size))[:-1])
+    medians = np.array([np.median(g) for g in groups])
+    return _heave(stamps, medians, params)[ping_of]
 
 
 def sounding_points(
@@ -293,6 +326,9 @@ class SeabedAttitude:
         self._kept: dict[float, Attitude | None] = {}
         self.planes: dict[float, BottomPlane] = {}
         """The plane found under each ping stamp asked for (for the report)."""
+        self.configured_holds = False
+        """The sonar's soundings agree with the configured level bed (``configured_holds``):
+        the configured altitude is to be used."""
 
     def prepare(self, stamps: Array) -> None:
         """Work out the attitudes of these ping stamps at once (the poses in one call)."""
@@ -353,22 +389,62 @@ def seabed_attitude(
     tilt_at: Callable[[float], Attitude | None] | None,
     sonar: SonarGeometry,
     params: BottomParams,
+    pings: Callable[[], Iterable[Ping]] | None = None,
 ) -> SeabedAttitude | None:
-    """The per-ping attitude with the seabed from the echosounder's soundings, the pings
-    at ``times`` with the vehicle ``priors`` (x, y, heading; NaN unknown) placing both;
-    None when there is no echosounder (or it is not to be used) or too few soundings."""
-    if not params.use_echosounder or not soundings:
-        return None
+    """The per-ping attitude with the seabed from the echosounder's soundings, else from
+    the sonar's own ``pings`` (yielded afresh on each call), the pings at ``times`` with
+    the vehicle ``priors`` (x, y, heading; NaN unknown) placing both; None when neither
+    is to be used or too few soundings are found."""
     vehicle_at = pose_interpolator(times, priors)
-    points, stamps = sounding_points(
-        soundings, vehicle_at, tilt_at or (lambda _t: None), params.echosounder
-    )
-    if len(points) < params.min_soundings:
+    model: BottomModel | None = None
+    if params.use_echosounder and soundings:
+        points, stamps = sounding_points(
+            soundings, vehicle_at, tilt_at or (lambda _t: None), params.echosounder
+        )
+        if len(points) >= params.min_soundings:
+            model = BottomModel(points, stamps, sonar.down_m, sonar.footprint(), params)
+    if model is None and params.use_sonar and pings is not None and sonar.head is not None:
+        points, stamps = sonar_soundings(
+            pings(), vehicle_at, sonar.sonar_pose, tilt_at, sonar.head, sonar.down_m, params.sonar
+        )
+        if len(points) >= params.min_soundings:
+            # Each sounding's error grows with the depth (a fraction of it, measured).
+            depth = float(np.median(points[:, 2])) - sonar.down_m
+            sigma = params.sonar.depth_sigma_fraction * max(depth, params.sonar.min_range_m)
+            fitted = replace(params, sounding_sigma_m=sigma)
+            model = BottomModel(points, stamps, sonar.down_m, sonar.footprint(), fitted, "sonar")
+    if model is None:
         return None
-    model = BottomModel(points, stamps, sonar.down_m, sonar.footprint(), params)
     attitude = SeabedAttitude(model, vehicle_at, sonar.sonar_pose, tilt_at)
     attitude.prepare(np.asarray(times, float))
+    if model.source == "sonar":
+        attitude.configured_holds = configured_holds(
+            attitude.planes.values(), sonar.altitude_m, params.sonar
+        )
     return attitude
+
+
+def configured_holds(
+    planes: Iterable[BottomPlane], altitude_m: float, params: SonarDepthParams
+) -> bool:
+    """Whether the configured level bed ``altitude_m`` below the sonar agrees with the
+    planes through the sonar's own soundings (the heave aside: the configured altitude
+    is the calm water's) within their accuracy, as a survey: their median altitude near
+    it, their spread a level bed's, their median slope level. A level bed at the right
+    altitude then maps better than planes that carry the soundings' noise."""
+    rows = np.array(
+        [(q.altitude_m - q.heave_m, q.slope_east, q.slope_north) for q in planes], float
+    )
+    if altitude_m <= 0 or not len(rows):
+        return False
+    relative = rows[:, 0] / altitude_m - 1.0
+    low, median, high = np.percentile(relative, [5, 50, 95])
+    slope = float(np.median(np.hypot(rows[:, 1], rows[:, 2])))
+    return bool(
+        abs(median) <= params.altitude_tolerance
+        and high - low <= params.altitude_spread
+        and slope <= params.slope_tolerance
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -383,6 +459,8 @@ class SonarGeometry:
     half_fan_rad: float
     lit_range_m: float
     sonar_pose: Callable[[Array], Array]
+    head: SonarHead | None = None
+    """The sonar's tilt, lever arm and mount yaw (to read the seabed in its pings)."""
 
     def footprint(self) -> tuple[float, float, float]:
         return footprint_band(

@@ -18,7 +18,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -49,6 +49,7 @@ from mapping.posegraph import Edge, OptimiserParams
 from mapping.preprocess import PreprocessParams, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.single_stage import SingleStageParams, single_stage
+from mapping.sonar_depth import SonarHead
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -238,9 +239,11 @@ def _seabed(
     mount: SonarMount,
     params: PipelineParams,
 ) -> SeabedAttitude | None:
-    """Each ping's altitude and bottom slope from the echosounder (``mapping.bottom``),
-    or None (the mount's altitude, level)."""
-    if not nav.ranges or not params.bottom.use_echosounder or times.size == 0:
+    """Each ping's altitude and bottom slope from the echosounder, else the sonar's own
+    pings (``mapping.bottom``), or None (the mount's altitude, level)."""
+    b = params.bottom
+    echosounder = bool(nav.ranges) and b.use_echosounder
+    if times.size == 0 or not (echosounder or b.use_sonar) or mount.altitude_m <= 0:
         return None
     first = next(iter(pings()))
     bearings = np.asarray(first.bearings_rad, float)
@@ -257,8 +260,14 @@ def _seabed(
             p.near_margin_deg,
         ),
         sonar_pose=mount.sonar_pose,
+        head=SonarHead(
+            mount.tilt_rad, (mount.forward_m, mount.starboard_m, mount.down_m), mount.yaw_rad
+        ),
     )
-    return seabed_attitude(nav.ranges, times, priors, tilt_at, geometry, params.bottom)
+    # The sonar's vertical beam as the preprocessing takes it.
+    aperture = math.radians(p.vertical_aperture_deg)
+    b = replace(b, sonar=replace(b.sonar, vertical_aperture_rad=aperture))
+    return seabed_attitude(nav.ranges, times, priors, tilt_at, geometry, b, pings)
 
 
 def map_survey(
@@ -300,6 +309,9 @@ def map_survey(
         track.at if params.project_attitude else None
     )
     seabed = _seabed(pings, nav, times, priors, attitude, mount, params)
+    agrees: SeabedAttitude | None = None
+    if seabed is not None and seabed.configured_holds:
+        agrees, seabed = seabed, None
     if seabed is not None:
         attitude = seabed
     started = clock.add("bottom", started)
@@ -378,10 +390,17 @@ def map_survey(
         pings(), poses, mapped, mount, frame, params, clock, progress, spill, attitude
     )
     bottom: dict[str, Any] = {"source": "configured", "altitude_m": mount.altitude_m}
+    if agrees is not None:
+        # The sonar's own soundings found the bed level at the configured altitude.
+        found = np.array([plane.altitude_m for plane in agrees.planes.values()])
+        bottom["sonar_agrees"] = {
+            "pings": int(found.size),
+            "median_altitude_m": float(np.median(found)),
+        }
     if seabed is not None:
         altitudes = np.array([plane.altitude_m for plane in seabed.planes.values()])
         bottom = {
-            "source": "echosounder",
+            "source": seabed.model.source,
             "soundings": len(seabed.model),
             "pings_with_plane": int(altitudes.size),
             "altitude_m": {

@@ -84,6 +84,11 @@ class SonarConfig:
     """Put the sonar in standby while no survey is open (it stops pinging: an M1200d
     pinging in air, on the trailer, overheats) and fire it again when one opens; its
     status broadcast is still watched."""
+    seabed_from_pings: bool = True
+    """Without an echosounder's soundings (none in the log, or ``[echosounder] use =
+    false``), take each ping's altitude and the bottom's slope from where the sonar's
+    vertical beam first lights the seabed (``mapping.sonar_depth``); false: ``altitude_m``
+    for every ping, on a level bed."""
 
 
 HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")

@@ -68,13 +68,16 @@ def mount_from_config(sonar: SonarConfig) -> SonarMount:
     )
 
 
-def bottom_params(echosounder: EchosounderConfig, defaults: BottomParams) -> BottomParams:
+def bottom_params(
+    echosounder: EchosounderConfig, defaults: BottomParams, from_pings: bool = True
+) -> BottomParams:
     """How the seabed under each ping is found, from the [echosounder] table: whether the
     soundings are used, and where the transducer sits (body FRD, metres from the GPS
-    antenna)."""
+    antenna); ``from_pings`` ([sonar] seabed_from_pings): else from the sonar's own."""
     return replace(
         defaults,
         use_echosounder=echosounder.use,
+        use_sonar=from_pings,
         echosounder=replace(
             defaults.echosounder,
             forward_m=echosounder.mount_x_m,
@@ -98,7 +101,7 @@ def pipeline_params(config: SiteConfig) -> PipelineParams:
         loops=replace(defaults.loops, enabled=m.loop_closures),
         blend=replace(defaults.blend, method=m.blending),
         single_stage=single_stage_params(m, defaults.single_stage),
-        bottom=bottom_params(config.echosounder, defaults.bottom),
+        bottom=bottom_params(config.echosounder, defaults.bottom, config.sonar.seabed_from_pings),
     )
 
 

@@ -1,7 +1,9 @@
 """An echosounder's depths in a .tlog reach the projection: a simulated sloping shore
 (the simulator's own echosounder, written as DISTANCE_SENSOR and RANGEFINDER) replayed
-with its site file gives every ping an altitude from the soundings, close to the truth's,
-and without them (``[echosounder] use = false``) the configured altitude, level."""
+with its site file gives every ping an altitude from the soundings, close to the truth's;
+without them (``[echosounder] use = false``) from the sonar's own first seabed return,
+and without that too (``[sonar] seabed_from_pings = false``) the configured altitude,
+level."""
 
 from __future__ import annotations
 
@@ -41,8 +43,18 @@ def test_the_soundings_in_the_tlog_set_each_pings_altitude(shore: Path, tmp_path
     assert abs(bottom["altitude_m"]["min"] - float(altitudes.min())) < 0.1
     assert abs(bottom["altitude_m"]["max"] - float(altitudes.max())) < 0.1
 
-    off = dataclasses.replace(
+    # Without the echosounder, the sonar's own first return; without either, the site's.
+    deaf = dataclasses.replace(
         config, echosounder=dataclasses.replace(config.echosounder, use=False)
+    )
+    own = replay(
+        shore / "sonar.oculus", shore / "nav.tlog", None, "gps-only", tmp_path / "s", config=deaf
+    )
+    assert own["bottom"]["source"] == "sonar"
+    assert own["bottom"]["pings_with_plane"] == report["frames"]["read"]
+    assert abs(own["bottom"]["altitude_m"]["median"] - float(np.median(altitudes))) < 0.06
+    off = dataclasses.replace(
+        deaf, sonar=dataclasses.replace(config.sonar, seabed_from_pings=False)
     )
     plain = replay(
         shore / "sonar.oculus", shore / "nav.tlog", None, "gps-only", tmp_path / "p", config=off
