@@ -38,6 +38,8 @@ DEFAULT_TIMEOUT_S = 20.0
 exchange (upload, read-back, arm, start) with its retries."""
 ATTEMPTS = 3
 """Tries per exchange while the autopilot answers busy, times out or the link hiccups."""
+SETTLE_S = 1.0
+"""How long a link being closed waits for MAVSDK to answer the requests it gave up on."""
 
 _HOST_PORT = re.compile(r"^(udpin|udpout|tcpin|tcpout)://(\[[^\]]*\]|[^:/\[\]]*):(\d+)$")
 _PYMAVLINK = re.compile(r"^(udpin|udpout|udp|tcp):([^:/]*):(\d+)$")
@@ -142,6 +144,9 @@ class Link:
         self.mission = MissionRaw(system)
         self.action = Action(system)
         self._armed: bool | None = None  # from the HEARTBEATs after the plugin came
+        self._unanswered: list[asyncio.Future[tuple[Any, ...]]] = []
+        """Requests given up on (timed out): MAVSDK still answers them, from its thread,
+        at the latest while it is torn down (``settle``)."""
         self.telemetry.subscribe_armed(self._on_armed)
 
     def _on_armed(self, armed: Any, _user_data: Any) -> None:  # MAVSDK's callback thread
@@ -170,7 +175,21 @@ class Link:
             hand_over(loop, answered, args[:-1])
 
         start(on_result)
-        return await asyncio.wait_for(answered, max(timeout_s, 0.0))
+        try:
+            return await asyncio.wait_for(asyncio.shield(answered), max(timeout_s, 0.0))
+        except TimeoutError:
+            self._unanswered.append(answered)
+            raise
+
+    async def settle(self, timeout_s: float) -> None:
+        """Wait up to ``timeout_s`` for the answers to requests given up on (a cancelled
+        upload's comes promptly): destroying MAVSDK while one is on its way into Python
+        from its thread crashed the process once (a segmentation fault in mavsdk-python's
+        callback)."""
+        pending = [f for f in self._unanswered if not f.done()]
+        if pending:
+            await asyncio.wait(pending, timeout=timeout_s)
+        self._unanswered.clear()
 
     async def exchange(
         self,
@@ -236,6 +255,10 @@ async def connected(url: str, timeout_s: float) -> AsyncIterator[Link]:
             instance.cancel_first_autopilot(handle)
         if system is None:
             raise SeamapError(f"no autopilot heard on {url} within {timeout_s:g} s")
-        yield Link(url, system)
+        link = Link(url, system)
+        try:
+            yield link
+        finally:
+            await link.settle(SETTLE_S)
     finally:
         instance.destroy()
