@@ -193,13 +193,13 @@ class BottomModel:
         pts = self.points[index]
         dt = self.times[index] - time
         # depth = z0 + g_e dx + g_n dy + tau dt; priors on g and tau (z0 free).
-        columns = [np.ones(len(index)), pts[:, 0] - centre[0], pts[:, 1] - centre[1], dt]
-        prior = [0.0, p.slope_sigma**-2, p.slope_sigma**-2, p.tide_rate_sigma_mps**-2]
-        design = np.column_stack(columns)
+        design = np.column_stack(
+            [np.ones(len(index)), pts[:, 0] - centre[0], pts[:, 1] - centre[1], dt]
+        )
         spatial = np.exp(-0.5 * (distance[near] / self.radius_m) ** 2)
-        prior_info = np.diag(prior)
+        prior_info = np.diag([0.0, p.slope_sigma**-2, p.slope_sigma**-2, p.tide_rate_sigma_mps**-2])
         robust = np.ones(len(index))
-        solution = np.zeros(design.shape[1])
+        solution = np.zeros(4)
         for _ in range(3):
             # The nearest bottom in the cone is the perpendicular: straight below the
             # transducer it lies sqrt(1 + |g|^2) times deeper (g from the pass before).
