@@ -235,14 +235,7 @@ class LocalRegistration:
 
     def frame(self, ping: Ping) -> SonarFrame:
         """Preprocess one ping; tables are rebuilt only when the sonar's geometry changes."""
-        last = self._fan_of
-        if (
-            self._fan is not None
-            and last is not None
-            and last[1] == ping.n_ranges
-            and last[2] == ping.range_resolution_m
-            and np.array_equal(last[0], ping.bearings_rad)
-        ):
+        if self._fan is not None and self._same_geometry(ping):
             fan = self._fan  # the same geometry as the last ping's (0.5 ms a ping to rebuild)
         else:
             fan = FanGeometry.of(
@@ -273,7 +266,26 @@ class LocalRegistration:
             self._fan = fan
             self._last = self._key = None  # a new geometry cannot be registered against the old
         attitude = self.attitude(ping.time) if self.attitude is not None else None
-        return self.preprocessor(ping.image, attitude)
+        return self.preprocessor(ping.image, attitude, ping.time)
+
+    def _same_geometry(self, ping: Ping) -> bool:
+        last = self._fan_of
+        return (
+            last is not None
+            and last[1] == ping.n_ranges
+            and last[2] == ping.range_resolution_m
+            and np.array_equal(last[0], ping.bearings_rad)
+        )
+
+    def observe(self, ping: Ping) -> None:
+        """A ping skipped (not preprocessed) still enters the preprocessor's flat field
+        (``Preprocessor.observe``); the first ping, or one of a new geometry, sets the
+        preprocessor up."""
+        if self.preprocessor is None or not self._same_geometry(ping):
+            self.frame(ping)
+            return
+        attitude = self.attitude(ping.time) if self.attitude is not None else None
+        self.preprocessor.observe(ping.image, attitude, ping.time)
 
     @property
     def fine_registrar(self) -> FmtRegistrar:

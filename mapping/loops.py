@@ -223,6 +223,7 @@ def register_hypotheses(
     out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for index, ping in enumerate(pings):
         if index not in wanted and index not in partners:
+            local.observe(ping)  # flattened as the registration pass flattened it
             continue
         frame = local.frame(ping)
         image, mask = frame.image, frame.own_mask

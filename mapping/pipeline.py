@@ -50,6 +50,7 @@ from mapping.preprocess import PreprocessParams, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.sonar_depth import SonarHead
+from mapping.survey_graph import GraphParams
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -130,6 +131,13 @@ class SurveyResult:
     def frames_mapped(self) -> int:
         return int(self.mapped.sum())
 
+    @property
+    def frames_unregistered(self) -> int:
+        """Frames mapped whose registration was refused: placed by the odometry bridges
+        and the navigation, blended below the registered ones (``blend_confidence``)."""
+        accepted = np.array([o.accepted for o in self.outcomes], bool)
+        return int((self.mapped & ~accepted).sum()) if accepted.size == self.mapped.size else 0
+
 
 class _Clock:
     def __init__(self) -> None:
@@ -184,10 +192,12 @@ def blend_frames(
     progress: Callable[[str, int, int], None] | None = None,
     spill: TileSpill | None = None,
     attitude: Callable[[float], Attitude | None] | None = None,
+    confidence: Array | None = None,
 ) -> TileStore:
     """Warp every mapped frame to its pose and blend it into the tile mosaic (Algorithm 1,
     lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates;
-    ``attitude`` the roll and pitch of each ping by its stamp."""
+    ``attitude`` the roll and pitch of each ping by its stamp; ``confidence`` each frame's
+    factor on its blending score (``blend_confidence``; None: 1)."""
     clock = clock or _Clock()
     mosaic = TileStore(TileGrid(params.mosaic_res_m, params.tile_px), params.blend, spill)
     scorer = make_scorer(params.blend)
@@ -209,6 +219,8 @@ def blend_frames(
         score = scorer(
             sonar_frame.image, sonar_frame.mask, sonar_frame.weight, sonar_frame.fan_weight
         )
+        if confidence is not None and confidence[index] < 1.0:
+            score = score * np.float32(confidence[index])
         east, north = frame.to_utm(sonar_poses[index, 0], sonar_poses[index, 1])
         pose = SonarPose(float(east), float(north), float(sonar_poses[index, 2]))
         mosaic.insert(
@@ -228,6 +240,59 @@ def blend_frames(
         if progress is not None:
             progress("blending", index + 1, n)
     return mosaic
+
+
+def blend_confidence(
+    times: Array,
+    accepted: npt.NDArray[np.bool_],
+    mapped: npt.NDArray[np.bool_],
+    graph: GraphParams,
+    mount: SonarMount,
+    cell_m: float,
+) -> Array:
+    """Each frame's factor on its blending score: 1 for a registered frame; for one placed
+    without a registration, cell^2 / (cell^2 + sigma^2), sigma the spread of its seabed
+    against the registered frames around it. That is the odometry bridges' sigma
+    (``GraphParams.odometry_*``) from the nearest registered frame before and after it,
+    the two combined as independent, its heading's share taken at twice the sonar's
+    altitude (about the middle of a fan's lit band). A pose error within a mosaic cell
+    costs nothing; a frame placed a few centimetres less surely than its neighbours
+    gives way to them where they cover the seabed, and is the map where nothing else is.
+    """
+    n = times.size
+    out = np.ones(n)
+    loose = mapped & ~accepted
+    if not loose.any():
+        return out
+    anchors = np.flatnonzero(accepted & mapped)
+    lever = 2.0 * max(mount.altitude_m, 0.5)
+
+    def variance(dt: Array) -> Array:
+        sigma_p = graph.odometry_sigma_m + graph.odometry_velocity_sigma_mps * dt
+        sigma_a = graph.odometry_sigma_rad + graph.odometry_rate_sigma_rps * dt
+        return sigma_p**2 + (lever * sigma_a) ** 2
+
+    index = np.flatnonzero(loose)
+    total = np.zeros(index.size)
+    if anchors.size:
+        after = np.searchsorted(anchors, index)
+        before_t = np.where(after > 0, times[anchors[np.maximum(after - 1, 0)]], -np.inf)
+        after_t = np.where(
+            after < anchors.size, times[anchors[np.minimum(after, anchors.size - 1)]], np.inf
+        )
+        info = 1.0 / variance(np.abs(times[index] - before_t)) + 1.0 / variance(
+            np.abs(after_t - times[index])
+        )
+        total = np.where(info > 0, 1.0 / np.maximum(info, 1e-300), np.inf)
+    else:
+        total[:] = np.inf
+    out[index] = np.maximum(cell_m**2 / (cell_m**2 + total), CONFIDENCE_FLOOR)
+    return out
+
+
+CONFIDENCE_FLOOR = 1e-4
+"""Least blending factor of a placed frame: however loosely placed, a patch of seabed
+only it saw still shows (no holes where a frame covers)."""
 
 
 def _seabed(
@@ -384,10 +449,26 @@ def map_survey(
     else:
         poses = _place_frames(mode, accepted, edges, priors)
     clock.add("optimisation", t0)
-    mapped = accepted & np.all(np.isfinite(poses), axis=1)
+    placed = np.all(np.isfinite(poses), axis=1)
+    graph = params.single_stage.graph
+    if mode in (Mode.SINGLE_STAGE, Mode.TWO_STAGE) and graph.place_rejected:
+        mapped = placed  # a frame whose registration was refused is placed all the same
+    else:
+        mapped = accepted & placed
+    confidence = blend_confidence(times, accepted, mapped, graph, mount, params.mosaic_res_m)
 
     mosaic = blend_frames(
-        pings(), poses, mapped, mount, frame, params, clock, progress, spill, attitude
+        pings(),
+        poses,
+        mapped,
+        mount,
+        frame,
+        params,
+        clock,
+        progress,
+        spill,
+        attitude,
+        confidence,
     )
     bottom: dict[str, Any] = {"source": "configured", "altitude_m": mount.altitude_m}
     if agrees is not None:

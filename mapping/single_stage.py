@@ -184,8 +184,9 @@ def single_stage(
 
 
 def _parents(chain: Sequence[RelativeConstraint], n: int) -> dict[int, RelativeConstraint]:
-    """The chain's constraint into each node from an earlier one (``chain_constraints``
-    gives every node but the first exactly one)."""
+    """The chain's constraint into each node from an earlier one, its last
+    (``chain_constraints`` gives every node but the first one or two, the last its
+    parent)."""
     return {c.j: c for c in chain if c.i < c.j < n}
 
 

@@ -99,6 +99,10 @@ class GraphParams:
     a closure about 22 cm off (a ripple period) was taken there. Why the tail is weaker
     in that graph is not yet known: off until it is. The live re-solve uses them
     (``ResolveParams.keyframe_edges``)."""
+    place_rejected: bool = True
+    """Every frame with a prior is a node, placed by the odometry bridges where its
+    registration was refused (issue 34: a refused frame was left out of the map, a third
+    of the seabed seen on a mud bottom); False: only the accepted frames."""
     sonar_latency_s: float = 0.05
     """Prior of the time from a ping's acquisition to its stamp (for the gyro and
     compass factors; the GNSS time offset is estimated)."""
@@ -204,23 +208,36 @@ def chain_constraints(
     params: GraphParams,
     gyro: npt.NDArray[np.int64] | None = None,
 ) -> tuple[npt.NDArray[np.int64], list[RelativeConstraint]]:
-    """The nodes (indices of the accepted frames with a prior) and one constraint into
-    each node but the first, from an earlier node, in node numbering: the registration
-    itself where one was accepted (from the keyframe it was registered against, with
-    ``keyframe_edges``; else the edge from the previous node composed through it), an
-    odometry bridge from the previous node otherwise. Every node is thus tied to an
-    earlier one: the constraints form a tree that spans the survey. ``gyro``: the gyro
-    epoch of every frame (``navigation.gyro_epochs``), to loosen the bridges the gyro
-    does not span."""
-    nodes = np.flatnonzero(accepted & np.all(np.isfinite(priors), axis=1)).astype(np.int64)
+    """The nodes and the constraints into each node but the first, from earlier nodes, in
+    node numbering: the registration itself where one was accepted (from the keyframe it
+    was registered against, with ``keyframe_edges``; else the edge from the last accepted
+    frame composed through it), an odometry bridge from the previous node otherwise.
+    Every node is thus tied to an earlier one: the constraints span the survey, and a
+    node's last constraint is its parent in a tree. ``gyro``: the gyro epoch of every
+    frame (``navigation.gyro_epochs``), to loosen the bridges the gyro does not span.
+
+    The nodes are every frame with a prior when ``place_rejected`` (a frame whose
+    registration was refused is placed by the bridge and the navigation at its time;
+    the registered frames after it keep their registrations, from the last accepted
+    frame), else the accepted frames only."""
+    placeable = np.all(np.isfinite(priors), axis=1)
+    if not params.place_rejected:
+        placeable &= accepted
+    nodes = np.flatnonzero(placeable).astype(np.int64)
     position = {int(k): i for i, k in enumerate(nodes)}
     by_j = {e.j: e for e in edges}
     constraints: list[RelativeConstraint] = []
     for a in range(1, nodes.size):
-        k_prev, k = int(nodes[a - 1]), int(nodes[a])
-        edge = by_j.get(k)
+        k = int(nodes[a])
+        edge = by_j.get(k) if accepted[k] else None
         outcome = outcomes[k] if k < len(outcomes) else None
-        if edge is not None and edge.i == k_prev:
+        if edge is not None and edge.i in position and edge.i < k:
+            if params.place_rejected and position[edge.i] != a - 1:
+                # The refused frames between hang on the bridges from behind; one more
+                # from the last of them ties them to this frame too, so they lie between
+                # their registered neighbours rather than trail off the first. (Before
+                # the registration: a node's last constraint is the one it hangs on.)
+                constraints.append(_bridge(a - 1, a, nodes, times, priors, params, gyro))
             measured = outcome.measured if outcome is not None else None
             if params.keyframe_edges and measured is not None and measured.i in position:
                 edge = measured
@@ -236,16 +253,22 @@ def chain_constraints(
                 )
             )
         else:
-            coasting = gyro is not None and (gyro[k] < 0 or gyro[k] != gyro[k_prev])
-            constraints.append(
-                odometry_constraint(
-                    a - 1,
-                    a,
-                    priors[k_prev],
-                    priors[k],
-                    float(times[k] - times[k_prev]),
-                    params,
-                    coasting,
-                )
-            )
+            constraints.append(_bridge(a - 1, a, nodes, times, priors, params, gyro))
     return nodes, constraints
+
+
+def _bridge(
+    a: int,
+    b: int,
+    nodes: npt.NDArray[np.int64],
+    times: Array,
+    priors: Array,
+    params: GraphParams,
+    gyro: npt.NDArray[np.int64] | None,
+) -> RelativeConstraint:
+    """The odometry bridge from node ``a`` to node ``b`` (node numbering)."""
+    k_prev, k = int(nodes[a]), int(nodes[b])
+    coasting = gyro is not None and (gyro[k] < 0 or gyro[k] != gyro[k_prev])
+    return odometry_constraint(
+        a, b, priors[k_prev], priors[k], float(times[k] - times[k_prev]), params, coasting
+    )

@@ -323,6 +323,7 @@ def replay(
             "read": result.frames_read,
             "mapped": result.frames_mapped,
             "rejected": dict(result.rejected),
+            "placed_without_registration": result.frames_unregistered,
             "registrations": len(result.edges),
             "loop_closures": asdict(result.loops),
             "skipped_in_log": skipped,

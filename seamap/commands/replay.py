@@ -136,6 +136,9 @@ def run(args: argparse.Namespace) -> int:
     )
     for reason, count in sorted(frames["rejected"].items()):
         print(f"  rejected {count}: {reason}")
+    unregistered = frames.get("placed_without_registration", 0)
+    if unregistered:
+        print(f"  {unregistered} placed without a registration (odometry and GNSS)")
     coverage = report["coverage"]
     line = f"  coverage: {coverage['covered_m2']:.0f} m² seen by {coverage['min_passes']}+ passes"
     if "area" in coverage:
