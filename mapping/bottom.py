@@ -34,7 +34,7 @@ under the level sonar position less the sonar's own depth below the antenna (its
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -418,33 +418,48 @@ def seabed_attitude(
     attitude = SeabedAttitude(model, vehicle_at, sonar.sonar_pose, tilt_at)
     attitude.prepare(np.asarray(times, float))
     if model.source == "sonar":
+        stamps = np.array(sorted(attitude.planes), float)
         attitude.configured_holds = configured_holds(
-            attitude.planes.values(), sonar.altitude_m, params.sonar
+            attitude.planes, vehicle_at(stamps)[0], sonar.altitude_m, params.sonar
         )
     return attitude
 
 
 def configured_holds(
-    planes: Iterable[BottomPlane], altitude_m: float, params: SonarDepthParams
+    planes: Mapping[float, BottomPlane],
+    poses: Array,
+    altitude_m: float,
+    params: SonarDepthParams,
 ) -> bool:
     """Whether the configured level bed ``altitude_m`` below the sonar agrees with the
-    planes through the sonar's own soundings (the heave aside: the configured altitude
-    is the calm water's) within their accuracy, as a survey: their median altitude near
-    it, their spread a level bed's, their median slope level. A level bed at the right
-    altitude then maps better than planes that carry the soundings' noise."""
-    rows = np.array(
-        [(q.altitude_m - q.heave_m, q.slope_east, q.slope_north) for q in planes], float
-    )
-    if altitude_m <= 0 or not len(rows):
+    planes through the sonar's own soundings (by stamp; ``poses`` the vehicle's (x, y,
+    heading) at each, in time order) within their accuracy, as a survey: their median
+    altitude (the heave aside: the configured altitude is the calm water's) near it, and
+    no sloping bed or tide that explains how they vary (``SonarDepthParams.bed_*``): a
+    plane in position and a line in time fitted to them, alongside a term in the boat's
+    heading (the bed's depth cannot depend on it: that part is the first return's own
+    bias). A level bed at the right altitude then maps better than planes that carry the
+    soundings' noise and bias."""
+    stamps = np.array(sorted(planes), float)
+    if altitude_m <= 0 or stamps.size < 8:
         return False
-    relative = rows[:, 0] / altitude_m - 1.0
-    low, median, high = np.percentile(relative, [5, 50, 95])
-    slope = float(np.median(np.hypot(rows[:, 1], rows[:, 2])))
-    return bool(
-        abs(median) <= params.altitude_tolerance
-        and high - low <= params.altitude_spread
-        and slope <= params.slope_tolerance
-    )
+    relative = np.array([planes[t].altitude_m - planes[t].heave_m for t in stamps]) / altitude_m
+    relative -= 1.0
+    if abs(float(np.median(relative))) > params.altitude_tolerance:
+        return False
+    poses = np.asarray(poses, float)
+    ok = np.all(np.isfinite(poses[:, :3]), axis=1)
+    if ok.sum() < 8:
+        return True
+    xy, heading = poses[ok, :2], poses[ok, 2]
+    bed = np.column_stack([xy - xy.mean(axis=0), stamps[ok] - stamps[ok].mean()])
+    design = np.column_stack([np.ones(bed.shape[0]), bed, np.cos(heading), np.sin(heading)])
+    values = relative[ok]
+    solution, *_ = np.linalg.lstsq(design, values, rcond=None)
+    total = float(np.var(values))
+    explained = 1.0 - float(np.var(values - design @ solution)) / total if total > 0 else 0.0
+    low, high = np.percentile(bed @ solution[1:4], [5, 95])
+    return not (explained >= params.bed_explained and high - low > params.bed_span)
 
 
 @dataclass(frozen=True, slots=True)
