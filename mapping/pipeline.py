@@ -295,25 +295,12 @@ CONFIDENCE_FLOOR = 1e-4
 only it saw still shows (no holes where a frame covers)."""
 
 
-def _seabed(
-    pings: Callable[[], Iterable[Ping]],
-    nav: NavSamples,
-    times: Array,
-    priors: Array,
-    tilt_at: Callable[[float], Attitude | None] | None,
-    mount: SonarMount,
-    params: PipelineParams,
-) -> SeabedAttitude | None:
-    """Each ping's altitude and bottom slope from the echosounder, else the sonar's own
-    pings (``mapping.bottom``), or None (the mount's altitude, level)."""
-    b = params.bottom
-    echosounder = bool(nav.ranges) and b.use_echosounder
-    if times.size == 0 or not (echosounder or b.use_sonar) or mount.altitude_m <= 0:
-        return None
-    first = next(iter(pings()))
+def sonar_geometry(first: Ping, mount: SonarMount, params: PipelineParams) -> SonarGeometry:
+    """What the bottom model needs of the sonar (``bottom.SonarGeometry``), from a ping of
+    the survey and the mount."""
     bearings = np.asarray(first.bearings_rad, float)
     p = params.preprocess
-    geometry = SonarGeometry(
+    return SonarGeometry(
         down_m=mount.down_m,
         altitude_m=mount.altitude_m,
         max_range_m=first.max_range_m,
@@ -329,6 +316,25 @@ def _seabed(
             mount.tilt_rad, (mount.forward_m, mount.starboard_m, mount.down_m), mount.yaw_rad
         ),
     )
+
+
+def _seabed(
+    pings: Callable[[], Iterable[Ping]],
+    nav: NavSamples,
+    times: Array,
+    priors: Array,
+    tilt_at: Callable[[float], Attitude | None] | None,
+    mount: SonarMount,
+    params: PipelineParams,
+) -> SeabedAttitude | None:
+    """Each ping's altitude and bottom slope from the echosounder, else the sonar's own
+    pings (``mapping.bottom``), or None (the mount's altitude, level)."""
+    b = params.bottom
+    echosounder = bool(nav.ranges) and b.use_echosounder
+    if times.size == 0 or not (echosounder or b.use_sonar) or mount.altitude_m <= 0:
+        return None
+    geometry = sonar_geometry(next(iter(pings())), mount, params)
+    p = params.preprocess
     # The sonar's vertical beam as the preprocessing takes it.
     aperture = math.radians(p.vertical_aperture_deg)
     b = replace(b, sonar=replace(b.sonar, vertical_aperture_rad=aperture))

@@ -36,6 +36,13 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.blend import make_scorer
+from mapping.bottom import (
+    BottomModel,
+    SonarGeometry,
+    pose_interpolator,
+    slope_in_heading,
+    sounding_points,
+)
 from mapping.closures import world_rotation
 from mapping.ekf import PSI, ImuInput, NavFilter, level_imu
 from mapping.fmt import SonarGrid
@@ -54,8 +61,15 @@ from mapping.live_resolve import (
     pack,
 )
 from mapping.mosaic import SonarPose, TileGrid, TileKey
-from mapping.navigation import position_sigma
-from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
+from mapping.navigation import AttitudeTrack, position_sigma
+from mapping.pipeline import (
+    Mode,
+    NavSamples,
+    PipelineParams,
+    SurveyResult,
+    map_survey,
+    sonar_geometry,
+)
 from mapping.polar import Attitude
 from mapping.posegraph import Edge
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
@@ -66,6 +80,12 @@ Array = npt.NDArray[np.float64]
 _MOST_REDRAWS = 3.0
 """Frames drawn again with one new frame, at most."""
 Sample = ImuSample | GnssFix | HeadingSample | AttitudeSample | RangeSample | Ping
+
+
+LIVE_BOTTOM_REFRESH_S = 2.0
+"""The live bottom model takes in the soundings that came since it was last built this
+often (s): the echosounder's footprint ahead of the boat is sounded a few seconds later,
+and a rebuild of an hour's soundings (18,000 at 5 Hz) costs milliseconds."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,8 +285,13 @@ class StreamingEngine:
             live_preprocess,
             p.fmt,
             p.registration,
-            self._attitude_at if p.project_attitude else None,
+            self._attitude_at if p.project_attitude else self._bottom_at,
         )
+        # The seabed under each ping from the echosounder's soundings so far (rebuilt
+        # every ``LIVE_BOTTOM_REFRESH_S``), as the survey-end pass has it from all of them.
+        self._geometry: SonarGeometry | None = None
+        self._bottom: BottomModel | None = None
+        self._bottom_built = (-math.inf, 0)  # (when, how many soundings it had)
         self.scorer = make_scorer(p.blend)
         self.tiles = TileStore(
             TileGrid(p.mosaic_res_m, p.tile_px),
@@ -419,6 +444,51 @@ class StreamingEngine:
         self.stats.time("ekf", started)
 
     def _attitude_at(self, stamp: float) -> Attitude | None:
+        """Roll and pitch when a ping stamped ``stamp`` was taken, with the seabed's
+        altitude and slope under it (``_bottom_at``)."""
+        return self._bottom_at(stamp, self._tilt_at(stamp))
+
+    def _bottom_at(self, stamp: float, tilt: Attitude | None = None) -> Attitude | None:
+        """``tilt`` with the altitude and slope of the seabed plane under the sonar at
+        ``stamp`` (the ping being processed: the filter's pose now) from the echosounder's
+        soundings so far; ``tilt`` as it is without them."""
+        model = self._live_bottom(stamp)
+        if model is None or not self.nav.initialised:
+            return tilt
+        state, _ = self.nav.state()
+        vehicle = state[[0, 1, PSI]]
+        plane = model.at(stamp, self.mount.sonar_pose(vehicle))
+        if plane is None:
+            return tilt
+        forward, starboard = slope_in_heading(plane, float(vehicle[2]))
+        roll, pitch = (tilt.roll_rad, tilt.pitch_rad) if tilt is not None else (0.0, 0.0)
+        return Attitude(roll, pitch, plane.altitude_m, forward, starboard)
+
+    def _live_bottom(self, now: float) -> BottomModel | None:
+        """The bottom model of the soundings so far, rebuilt when ``LIVE_BOTTOM_REFRESH_S``
+        has passed and new soundings came (None: no echosounder, or too few)."""
+        b = self.params.pipeline.bottom
+        if not b.use_echosounder or not self._ranges or self._geometry is None:
+            return None
+        when, count = self._bottom_built
+        if now - when < LIVE_BOTTOM_REFRESH_S or len(self._ranges) == count:
+            return self._bottom
+        self._bottom_built = (now, len(self._ranges))
+        times = np.array(self.times, float)
+        poses = np.array(self.poses, float).reshape(-1, 3)
+        if int(np.all(np.isfinite(poses), axis=1).sum()) < 2:
+            return self._bottom
+        latency = self.params.pipeline.single_stage.graph.sonar_latency_s
+        track = AttitudeTrack(self._attitudes, latency)
+        points, stamps = sounding_points(
+            self._ranges, pose_interpolator(times, poses), track.at, b.echosounder
+        )
+        if len(points) >= b.min_soundings:
+            geometry = self._geometry
+            self._bottom = BottomModel(points, stamps, geometry.down_m, geometry.footprint(), b)
+        return self._bottom
+
+    def _tilt_at(self, stamp: float) -> Attitude | None:
         """Roll and pitch when a ping stamped ``stamp`` was taken, from the recent
         attitude reports (None without one within half a second)."""
         recent = self._recent_attitude
@@ -489,6 +559,8 @@ class StreamingEngine:
             state, _ = self.nav.state()
             prior = state[[0, 1, PSI]]
         started = stats.time("ekf", started)
+        if self._geometry is None and self.mount.altitude_m > 0:
+            self._geometry = sonar_geometry(ping, self.mount, self.params.pipeline)
         sonar_frame = self.local.frame(ping)
         started = stats.time("preprocess", started)
         outcome = self.local.register(index, ping.time, sonar_frame, prior, odometry, gyro)

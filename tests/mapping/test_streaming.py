@@ -304,3 +304,45 @@ def test_the_survey_end_pass_blends_by_the_configured_method(recorded: Recorded)
     for a, b in itertools.combinations(mosaics, 2):
         both = (mosaics[a] > 0) & (mosaics[b] > 0)
         assert np.abs(mosaics[a][both].astype(float) - mosaics[b][both]).mean() > 2.0, (a, b)
+
+
+def test_the_live_map_projects_each_ping_at_the_echosounders_seabed() -> None:
+    """A sloping shore (sonar 1.1-2.1 m above the bed) with an echosounder on the
+    autopilot, its first two minutes: live, each ping's altitude comes from the soundings
+    so far (the bottom model rebuilt every few seconds), not the site file's mean
+    (measured: 4.8 cm from the truth at the median, the site's mean 12.6 cm)."""
+    simulated = survey_events("shore", 1, max_pings=600, n_beams=64)
+    config = simulated.site_config
+    assert config.echosounder.use
+    truth = dict(zip(simulated.truth.acquisition_time, simulated.truth.altitude_m, strict=True))
+    samples = [s for _, s in simulated.events]
+    params = StreamingParams(pipeline=pipeline_params(config))
+    engine = StreamingEngine(mount_from_config(config.sonar), params)
+    asked = engine.local.attitude
+    assert asked is not None
+    seen: list[tuple[float, float | None]] = []
+
+    def recording(stamp: float) -> Any:
+        attitude = asked(stamp)
+        seen.append((stamp, attitude.altitude_m if attitude is not None else None))
+        return attitude
+
+    engine.local.attitude = recording
+    for sample in samples:
+        engine.add(sample)
+    engine.flush()
+    pings = [s for s in samples if isinstance(s, Ping)]
+    assert len(seen) >= len(pings) - 1
+    configured = config.sonar.altitude_m
+    live = [(t, a) for t, a in seen if a is not None]
+    # After the first seconds every ping has the soundings' altitude ...
+    assert len(live) >= 0.8 * len(seen)
+    latency = params.pipeline.single_stage.graph.sonar_latency_s
+    errors, off = [], []
+    for stamp, altitude in live:
+        true = min(truth.items(), key=lambda kv: abs(kv[0] - (stamp - latency)))[1]
+        errors.append(altitude - true)
+        off.append(configured - true)
+    # ... closer to the truth than the site file's mean is, by far.
+    assert float(np.median(np.abs(errors))) < 0.5 * float(np.median(np.abs(off)))
+    assert float(np.median(np.abs(errors))) < 0.08
