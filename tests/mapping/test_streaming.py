@@ -315,7 +315,7 @@ def test_the_live_map_projects_each_ping_at_the_echosounders_seabed() -> None:
     config = simulated.site_config
     assert config.echosounder.use
     truth = dict(zip(simulated.truth.acquisition_time, simulated.truth.altitude_m, strict=True))
-    samples = [s for _, s in simulated.events]
+    samples: list[Any] = [s for _, s in simulated.events]
     params = StreamingParams(pipeline=pipeline_params(config))
     engine = StreamingEngine(mount_from_config(config.sonar), params)
     asked = engine.local.attitude
