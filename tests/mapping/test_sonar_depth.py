@@ -201,10 +201,10 @@ def test_the_site_file_turns_it_off(tmp_path: Path) -> None:
 def _lawnmower_planes(
     bed: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], seed: int
 ) -> tuple[dict[float, BottomPlane], np.ndarray]:
-    """Planes of a 4-lane lawnmower (36 m lanes 8 m apart, 0.125 m/s: one plane every 4
-    s and 0.5 m, 19 minutes) over a bed whose altitude ``bed(east, north, time)`` gives,
-    as the sonar's first return reads it: each lane biased by its heading (+-8 %) and
-    each ping by 4 % noise."""
+    """Planes of a 4-lane lawnmower (36 m lanes 8 m apart, one plane every 0.5 m and 13
+    s: an hour) over a bed whose altitude ``bed(east, north, time)`` gives, as the
+    sonar's first return reads it: each lane biased by its heading (+-4 %) and each ping
+    by 2 % noise."""
     rng = np.random.default_rng(seed)
     east, north, heading = [], [], []
     for lane in range(4):
@@ -213,8 +213,8 @@ def _lawnmower_planes(
         north.append(along if lane % 2 == 0 else along[::-1])
         heading.append(np.full(along.size, 1.0 if lane % 2 == 0 else -1.0))
     e, n, h = (np.concatenate(v) for v in (east, north, heading))
-    t = 4.0 * np.arange(e.size, dtype=float)
-    altitude = bed(e, n, t) * (1.0 + 0.08 * h + 0.04 * rng.standard_normal(e.size))
+    t = 13.0 * np.arange(e.size, dtype=float)
+    altitude = bed(e, n, t) * (1.0 + 0.04 * h + 0.02 * rng.standard_normal(e.size))
     planes = {
         float(stamp): BottomPlane(float(a), 0.0, 0.0, 20)
         for stamp, a in zip(t, altitude, strict=True)
@@ -228,14 +228,14 @@ def _lawnmower_planes(
         (lambda e, n, t: np.full(e.size, 1.0), True),  # level, at the configured 1 m
         (lambda e, n, t: 1.0 + 0.03 * (n - 18.0), False),  # a 3 % slope along the lanes
         (lambda e, n, t: 1.0 + 0.02 * (e - 12.0), False),  # 2 % across them
-        (lambda e, n, t: 1.0 + 0.3 / 3600.0 * t, False),  # a tide of 0.3 m an hour (9.6 cm)
+        (lambda e, n, t: 1.0 + 0.3 / 3600.0 * t, False),  # a tide of 0.3 m an hour
         (lambda e, n, t: np.full(e.size, 1.1), False),  # level, 10 % deeper than said
     ],
 )
 def test_the_configured_level_bed_holds_unless_a_bed_or_a_tide_explains_the_planes(
     bed: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], holds: bool
 ) -> None:
-    # The lanes' biases (+-8 %) and the noise vary the planes as much as a slope does;
-    # what tells a slope is that position explains it.
+    # The lanes' biases and the noise vary the planes as much as a slope does; what tells
+    # a slope or a tide is that position or time explains it.
     planes, positions = _lawnmower_planes(bed, seed=7)
     assert configured_holds(planes, positions, 1.0, SonarDepthParams()) is holds
