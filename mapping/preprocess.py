@@ -192,6 +192,14 @@ def _scale_rows(image: npt.NDArray[np.float32], factor: float) -> npt.NDArray[np
     )
 
 
+def _as_float(image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> npt.NDArray[np.float32]:
+    """A ping's polar image as float32 on the 8-bit scale (16-bit pings scaled down)."""
+    frame = image.astype(np.float32)
+    if image.dtype == np.uint16:
+        frame *= 255.0 / 65535.0
+    return frame
+
+
 def _to_uint8(image: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
@@ -327,9 +335,7 @@ class Preprocessor:
         the pings looked at after it are flattened as in the pass that saw them all."""
         if self.params.flat_field_s <= 0:
             return
-        frame = image.astype(np.float32)
-        if image.dtype == np.uint16:
-            frame *= 255.0 / 65535.0
+        frame = _as_float(image)
         altitude = attitude.altitude_m if attitude is not None else None
         self.flatten(frame, altitude, time, divide=False)
 
@@ -350,9 +356,7 @@ class Preprocessor:
         """Steps 0-4 on the polar frame (rows = ranges), as 8-bit; ``altitude_m`` and
         ``time`` the ping's, for the flat field."""
         p = self.params
-        frame = image.astype(np.float32)
-        if image.dtype == np.uint16:
-            frame *= 255.0 / 65535.0
+        frame = _as_float(image)
         frame = self.flatten(frame, altitude_m, time)
         lit = frame[self.first_lit_row :]
         if p.equalize_rows:
