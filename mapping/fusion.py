@@ -25,6 +25,9 @@ Factors
       loop closures may carry a Cauchy kernel (iteratively reweighted);
     - GNSS fix z at stamp t: p(t - dt) + b(t) - z over the white sigma, p interpolated
       between the frames that bracket it, b between the knots;
+    - its Doppler velocity v: the frames' mean velocity over the span of time the fix
+      stands for, minus v, over the velocity sigma (free of the wander b: the course
+      over the ground that pins the map's heading, and the way travelled);
     - bias process: b_k+1 - phi b_k over sigma_b sqrt(1 - phi^2), phi = exp(-h / tau),
       and the stationary b_0 over sigma_b;
     - compass h at t: psi(t) + c . f(psi) - h over its sigma, the correlated part of its
@@ -83,6 +86,15 @@ class GnssErrorModel:
     """The smallest reported accuracy believed (per axis): a fixed RTK solution is no
     better than its antenna's phase-centre variation and the boat's flex, a few
     millimetres, and a receiver that says less would make its fixes rigid."""
+    velocity_sigma_mps: float = 0.1
+    """Sigma of a fix's Doppler velocity, per axis (0: not used). A u-blox M8N states
+    0.05 m/s; twice that covers the receiver's own smoothing (consecutive fixes are not
+    independent) and the antenna's sway on a small boat. The velocity does not share
+    the position's wander: it is what ties the map's scale to the ground where the
+    registrations' is off (a faint bottom's registrations lock towards no motion)."""
+    velocity_span_s: float = 1.0
+    """The longest span of time one velocity fix stands for (fixes further apart leave
+    gaps between their spans)."""
 
     def fix_sigmas(
         self, accuracy_m: Array | None, fix_type: IntArray | None, count: int
@@ -229,6 +241,9 @@ class FusionData:
     gnss_fix_type: IntArray | None = None
     """(g,) each fix's type (``GnssFixType``); None: unknown. With the accuracy, what
     weighs the fix and sizes the wander around it (``GnssErrorModel.fix_sigmas``)."""
+    gnss_velocity: Array | None = None
+    """(g, 2) each fix's Doppler velocity (east, north m/s, grid); NaN where the receiver
+    gave none (or too slow for a course); None: none at all."""
 
 
 @dataclass(frozen=True)
@@ -399,6 +414,43 @@ def _bias_steps(model: GnssErrorModel, knot_scales: Array) -> tuple[Array, Array
     return rho, model.bias_sigma_m * np.sqrt(np.maximum(variance, 1e-12 * after * after))
 
 
+def _velocity_factors(b: _Builder, fusion: Fusion, poses: Array, reference: float) -> None:
+    """Each fix's Doppler velocity against the frames' mean velocity over the span of
+    time it stands for: half-way to the fixes either side, at most ``velocity_span_s``
+    (the spans tile the survey, so no frame interval between fixes escapes them and no
+    fix counts twice), its ends interpolated between the frames around them and slid
+    by the reference offset, as a position fix is."""
+    d = fusion.data
+    g = fusion.params.gnss
+    if d.gnss_velocity is None or g.velocity_sigma_mps <= 0 or d.gnss_times.size < 2:
+        return
+    t = d.gnss_times - reference
+    edges = np.concatenate([[t[0] - (t[1] - t[0])], t, [t[-1] + (t[-1] - t[-2])]])
+    before = np.minimum(0.5 * (edges[1:-1] - edges[:-2]), 0.5 * g.velocity_span_s)
+    after = np.minimum(0.5 * (edges[2:] - edges[1:-1]), 0.5 * g.velocity_span_s)
+    k0, w0, ok0 = _bracket(fusion.times, t - before, g.max_bracket_s)
+    k1, w1, ok1 = _bracket(fusion.times, t + after, g.max_bracket_s)
+    usable = ok0 & ok1 & np.isfinite(d.gnss_velocity).all(axis=1) & (before + after > 1e-3)
+    if not usable.any():
+        return
+    k0, w0, k1, w1 = k0[usable], w0[usable], k1[usable], w1[usable]
+    span = (before + after)[usable]
+    v = d.gnss_velocity[usable]
+    inv = 1.0 / (g.velocity_sigma_mps * fusion._velocity_scale[usable])
+    start_pos = (1 - w0)[:, None] * poses[k0, :2] + w0[:, None] * poses[k0 + 1, :2]
+    end_pos = (1 - w1)[:, None] * poses[k1, :2] + w1[:, None] * poses[k1 + 1, :2]
+    predicted = (end_pos - start_pos) / span[:, None]
+    start = b.block("gnss_velocity", inv[:, None] * (predicted - v))
+    m = k0.size
+    per = inv / span
+    for axis in range(2):
+        rows = start + 2 * np.arange(m) + axis
+        b.add(rows, 3 * k1 + axis, per * (1 - w1))
+        b.add(rows, 3 * (k1 + 1) + axis, per * w1)
+        b.add(rows, 3 * k0 + axis, -per * (1 - w0))
+        b.add(rows, 3 * (k0 + 1) + axis, -per * w0)
+
+
 def compass_basis(psi: Array) -> tuple[Array, Array]:
     """f(psi) (m, 5) and df/dpsi (m, 5)."""
     s1, c1 = np.sin(psi), np.cos(psi)
@@ -539,10 +591,12 @@ class Fusion:
         self._fix_white, wander = g.fix_sigmas(
             data.gnss_accuracy_m, data.gnss_fix_type, data.gnss_times.size
         )
+        self._fix_white_stated = self._fix_white
         self._knot_scale = _knot_scales(
             self.knot_times, g.knot_spacing_s, data.gnss_times, wander / g.bias_sigma_m
         )
         self._bracket_offset_s = g.time_offset_s
+        self._velocity_scale = np.ones(data.gnss_times.size)
         self._rebracket_s = _rebracket_threshold(self.times, data, self._fix_white)
         self.layout = _Layout(n if rigid is None else rigid.n_groups, n_knots, n_gyro)
         self._frame_layout = _Layout(n, n_knots, n_gyro)
@@ -620,6 +674,7 @@ class Fusion:
                     b.add(rows, lay.bias0 + 2 * kb + axis, per_m * (1 - u))
                     b.add(rows, lay.bias0 + 2 * (kb + 1) + axis, per_m * u)
                     b.add(rows, np.full(m, lay.offset), -per_m * velocity[:, axis])
+            _velocity_factors(b, self, poses, reference)
 
         # The bias as a Gauss-Markov process between knots, its sigma at each knot the
         # model's scaled by the reported accuracy there (``_bias_steps``), stationary at
@@ -802,6 +857,8 @@ class Fusion:
                 break
         residual, jac, kinds = self._build(x, constraints, weights)
         self._last = (x, constraints, weights, jac)
+        self._last_rows = (residual, kinds)
+        self.last_state = x
         chi2: dict[str, float] = {}
         counts: dict[str, int] = {}
         for kind, a, z in kinds:
@@ -822,6 +879,64 @@ class Fusion:
             robust_weights=weights,
         )
         return solution, x
+
+    def set_gnss_sigma_factors(self, position: float, velocity: float = 1.0) -> None:
+        """Every fix's white sigma ``position`` times what its model or report gives,
+        its velocity's ``velocity`` times (variance components: ``single_stage``)."""
+        self._fix_white = self._fix_white_stated * position
+        self._velocity_scale = np.full(self.data.gnss_times.size, velocity)
+
+    def variance_components(
+        self,
+        constraint_groups: dict[str, tuple[npt.NDArray[np.bool_], tuple[int, ...]]],
+        factor_kinds: Sequence[str] = (),
+        probes: int = 48,
+    ) -> dict[str, tuple[float, float]]:
+        """At the last solution: per group, its chi-square and its redundancy (how many of
+        its rows the rest of the problem checks: rows less the trace of its share of the
+        hat matrix J (J^T J)^-1 J^T). Their ratio is the group's variance factor: 1 where
+        its covariances are right, more where its measurements scatter more than they
+        said (Helmert / Foerstner variance component estimation).
+
+        constraint_groups: names to (a mask over the last solve's constraints, which of
+        their whitened rows: 0 and 1 translation, 2 yaw); factor_kinds: kinds of factor
+        taken whole ("gnss", "gnss_velocity"). The hat matrix's diagonal is estimated with
+        ``probes`` Rademacher vectors (Hutchinson), drawn from a fixed seed: the same
+        problem gives the same factors."""
+        jac = self._last[3]
+        residual, kinds = self._last_rows
+        rows: dict[str, IntArray] = {}
+        for name in factor_kinds:
+            spans = [np.arange(a, z) for kind, a, z in kinds if kind == name]
+            rows[name] = np.concatenate(spans).astype(np.int64) if spans else np.zeros(0, np.int64)
+        start = next((a for kind, a, _ in kinds if kind == "relative"), 0)
+        for name, (mask, components) in constraint_groups.items():
+            k = np.flatnonzero(np.asarray(mask, bool))
+            picked = np.asarray(components, np.int64)
+            rows[name] = (start + 3 * k[:, None] + picked[None, :]).ravel().astype(np.int64)
+        chosen = np.unique(np.concatenate(list(rows.values()) or [np.zeros(0, np.int64)]))
+        out: dict[str, tuple[float, float]] = {}
+        if chosen.size == 0:
+            return {name: (0.0, 0.0) for name in rows}
+        jac = sp.csr_matrix(jac)
+        lu = factor_spd(jac.T @ jac)
+        rng = np.random.default_rng(20240611)
+        sub = jac[chosen]
+        leverage = np.zeros(chosen.size)
+        for b0 in range(0, probes, 16):
+            z = rng.choice((-1.0, 1.0), size=(chosen.size, min(16, probes - b0)))
+            hz = sub @ np.asarray(lu.solve(np.asarray(sub.T @ z)))
+            leverage += (z * hz).sum(axis=1)
+        leverage /= probes
+        for name, r in rows.items():
+            if not r.size:
+                out[name] = (0.0, 0.0)
+                continue
+            idx = np.searchsorted(chosen, r)
+            chi2 = float(residual[r] @ residual[r])
+            redundancy = float(r.size - np.clip(leverage[idx], 0.0, 1.0).sum())
+            out[name] = (chi2, redundancy)
+        return out
 
     def relative_covariances(
         self,

@@ -216,6 +216,8 @@ class LiveResolver:
         self._gnss_t = array("d")
         self._gnss_x = array("d")
         self._gnss_y = array("d")
+        self._gnss_vx = array("d")  # Doppler velocity, NaN where none
+        self._gnss_vy = array("d")
         self._head_t = array("d")
         self._head = array("d")
         self._imu_t = array("d")
@@ -237,10 +239,15 @@ class LiveResolver:
         """Survey time from which the next re-solve may run."""
 
     # -- what comes in -----------------------------------------------------------------
-    def add_gnss(self, time: float, x: float, y: float) -> None:
+    def add_gnss(
+        self, time: float, x: float, y: float, vx: float = math.nan, vy: float = math.nan
+    ) -> None:
+        """A fix (local metres) and its Doppler velocity (m/s east, north; NaN: none)."""
         self._gnss_t.append(time)
         self._gnss_x.append(x)
         self._gnss_y.append(y)
+        self._gnss_vx.append(vx)
+        self._gnss_vy.append(vy)
 
     def add_heading(self, time: float, grid_heading: float) -> None:
         self._head_t.append(time)
@@ -471,6 +478,9 @@ class LiveResolver:
         gnss_xy = np.column_stack(
             [np.frombuffer(self._gnss_x, float)[g_in], np.frombuffer(self._gnss_y, float)[g_in]]
         )
+        velocity = np.column_stack(
+            [np.frombuffer(self._gnss_vx, float)[g_in], np.frombuffer(self._gnss_vy, float)[g_in]]
+        )
         ht = np.frombuffer(self._head_t, float)
         h_in = (ht >= t0) & (ht <= t1)
         yaw, gap = gyro_at_frames(
@@ -486,6 +496,7 @@ class LiveResolver:
             np.frombuffer(self._head, float)[h_in].copy(),
             yaw,
             gap,
+            gnss_velocity=velocity if np.isfinite(velocity).any() else None,
         )
 
     def _forget_before(self, first: int) -> None:
@@ -505,7 +516,7 @@ class LiveResolver:
         self.closures = [c for c in self.closures if c.j >= first]
         t0 = self.times[first] - 10.0
         for ts, others in (
-            (self._gnss_t, (self._gnss_x, self._gnss_y)),
+            (self._gnss_t, (self._gnss_x, self._gnss_y, self._gnss_vx, self._gnss_vy)),
             (self._head_t, (self._head,)),
             (self._imu_t, (self._imu_yaw,)),
         ):

@@ -5,6 +5,7 @@ closures chosen robustly (``mapping.closures``)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -51,6 +52,9 @@ class SingleStageParams:
     closure_rounds: int = 2
     """Closures are chosen this many times, each against the graph the previous choice
     tied together."""
+    variance_rounds: int = 4
+    """How many times the registrations' and the fixes' covariances may be widened to
+    what their residuals say (``variance_components``); 0: taken as stated."""
 
 
 @dataclass
@@ -133,6 +137,9 @@ def single_stage(
     if gyro is not None and rigid is None:
         initial = _coast_initial(initial, chain, gyro[nodes] < 0)
     solution, state = fusion.solve(initial, chain)
+    chain, factors, widened = _widen_to_residuals(fusion, initial, chain, params.variance_rounds)
+    if widened is not None:
+        solution, state = widened
     poses_nodes = solution.poses
     kept: list[RelativeConstraint] = []
     if closure_source is not None and nodes.size > 1:
@@ -176,11 +183,84 @@ def single_stage(
         "gnss_time_offset_s": solution.time_offset_s,
         "gnss_bias_rms_m": float(np.sqrt(np.mean(solution.bias_xy**2))),
         "iterations": solution.iterations,
+        "variance_factors": factors,
         "chi2_per_factor": {
             k: solution.chi2[k] / max(solution.counts.get(k, 1), 1) for k in solution.chi2
         },
     }
     return SingleStageResult(out, _as_edges(nodes, kept), solution, report, summary)
+
+
+# The fewest rows a group's residuals must be checked by (its redundancy) before its
+# variance factor is believed: at 8, a factor's own sigma is sqrt(2 / 8) = 0.5.
+MIN_REDUNDANCY = 8.0
+
+
+def _widen_to_residuals(
+    fusion: Fusion, initial: Array, chain: list[RelativeConstraint], rounds: int
+) -> tuple[list[RelativeConstraint], dict[str, Any], tuple[FusionSolution, Array] | None]:
+    """The registrations' covariances (translation and yaw apart) and the GNSS fixes'
+    (position and Doppler velocity apart) widened to what their own residuals say, where
+    those say they scatter more than stated (variance component estimation,
+    ``Fusion.variance_components``: chi-square over redundancy per group).
+
+    A registration's covariance comes from its correlation peak's sharpness, which does
+    not see a peak locked on the sonar's own insonification pattern (deep mud: wrong by
+    35 cm at the median where the peak said 4 cm); a receiver's sigmas are the site
+    configuration's or its own report.
+
+    The groups are estimated together, both ways, as Foerstner's iteration does (a group
+    that takes the blame for another's scatter gives it back in the next round), for at
+    most ``rounds`` re-solves; a group moves only where its factor is significant (beyond
+    two standard deviations of a chi-square of that redundancy: 1 + 2 sqrt(2 / r)) and
+    checked by at least ``MIN_REDUNDANCY`` rows. Then the stated models are the floor: a
+    group the iteration narrowed goes back to what it said (a short survey's chi-square
+    is too noisy to trust a narrowing). The factors returned are the products over the
+    rounds (``rounds``: how many ran), with the last solution (None: none ran)."""
+    names = ("translation", "yaw", "gnss", "gnss_velocity")
+    total = dict.fromkeys(names, 1.0)
+    applied = 0
+    solved: tuple[FusionSolution, Array] | None = None
+    stated = list(chain)
+    mask = np.array([c.kind == "registration" for c in chain], bool)
+
+    def apply(factors: dict[str, float]) -> list[RelativeConstraint]:
+        root = np.diag(
+            [1.0 / math.sqrt(factors["translation"])] * 2 + [1.0 / math.sqrt(factors["yaw"])]
+        )
+        fusion.set_gnss_sigma_factors(
+            math.sqrt(factors["gnss"]), math.sqrt(factors["gnss_velocity"])
+        )
+        return [
+            replace(c, sqrt_info=c.sqrt_info @ root) if m else c
+            for c, m in zip(stated, mask, strict=True)
+        ]
+
+    for _ in range(rounds):
+        found = fusion.variance_components(
+            {"translation": (mask, (0, 1)), "yaw": (mask, (2,))}, ("gnss", "gnss_velocity")
+        )
+        moved = False
+        for name, (chi2, redundancy) in found.items():
+            if redundancy < MIN_REDUNDANCY:
+                continue
+            factor = chi2 / redundancy
+            if abs(factor - 1.0) > 2.0 * math.sqrt(2.0 / redundancy):
+                total[name] *= factor
+                moved = True
+        if not moved:
+            break
+        applied += 1
+        solved = fusion.solve(initial, apply(total), fusion.last_state)
+    if applied:
+        # The stated models are the floor: a group the iteration narrowed goes back.
+        floored = {name: max(1.0, value) for name, value in total.items()}
+        if floored != total:
+            total = floored
+            solved = fusion.solve(initial, apply(total), fusion.last_state)
+        if any(value != 1.0 for value in total.values()):
+            chain = apply(total)
+    return chain, {**total, "rounds": applied}, solved
 
 
 def _parents(chain: Sequence[RelativeConstraint], n: int) -> dict[int, RelativeConstraint]:

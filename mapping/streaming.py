@@ -523,7 +523,6 @@ class StreamingEngine:
             self._convergence = self.frame.convergence_rad(fix.lat_deg, fix.lon_deg)
         xs, ys = self.frame.to_local([fix.lat_deg], [fix.lon_deg])
         x, y = float(xs[0]), float(ys[0])
-        self.resolver.add_gnss(fix.time, x, y)
         vx = vy = math.nan
         if (
             fix.speed_mps is not None
@@ -532,6 +531,7 @@ class StreamingEngine:
         ):
             course = (fix.course_rad + self._convergence) % (2 * math.pi)
             vx, vy = fix.speed_mps * math.sin(course), fix.speed_mps * math.cos(course)
+        self.resolver.add_gnss(fix.time, x, y, vx, vy)
         if not self.nav.initialised:
             if self._pending_heading is None:
                 return

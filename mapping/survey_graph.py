@@ -118,16 +118,24 @@ def fusion_data(inputs: NavInputs, frame_times: Array, latency_s: float) -> Fusi
     gnss_xy = np.array([(f.x, f.y) for f in inputs.positions], float).reshape(-1, 2)
     accuracy = np.array([f.h_acc_m for f in inputs.positions], float)
     fix_type = np.array([int(f.fix_type) for f in inputs.positions], np.int64)
+    velocity = np.array([(f.vx, f.vy) for f in inputs.positions], float).reshape(-1, 2)
     head_t = np.array([h.time for h in inputs.headings], float)
     head = np.array([h.heading for h in inputs.headings], float)
     t = np.array([s.time for s in inputs.imu], float)
     rate = np.array([s.yaw_rate_rps for s in inputs.imu], float)
     integral = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
     yaw, gap = gyro_at_frames(t, integral, frame_times, latency_s)
-    if not np.isfinite(accuracy).any():
-        return FusionData(gnss_t, gnss_xy, head_t, head, yaw, gap)
+    known = np.isfinite(accuracy).any()
     return FusionData(
-        gnss_t, gnss_xy, head_t, head, yaw, gap, gnss_accuracy_m=accuracy, gnss_fix_type=fix_type
+        gnss_t,
+        gnss_xy,
+        head_t,
+        head,
+        yaw,
+        gap,
+        gnss_accuracy_m=accuracy if known else None,
+        gnss_fix_type=fix_type if known else None,
+        gnss_velocity=velocity if np.isfinite(velocity).any() else None,
     )
 
 

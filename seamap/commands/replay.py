@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -11,6 +12,25 @@ from typing import Any
 from seamap.errors import SeamapError
 
 MODES = ("single-stage", "two-stage", "fmt-only", "gps-only", "streaming")
+
+
+_GROUPS = {
+    "translation": "registrations' translations",
+    "yaw": "registrations' rotations",
+    "gnss": "GNSS positions",
+    "gnss_velocity": "GNSS velocities",
+}
+
+
+def _widened(factors: dict[str, float]) -> str:
+    """The groups whose sigmas the fusion widened to their residuals, as "translations
+    2.4x their stated sigma, ..." (empty: none)."""
+    parts = [
+        f"{label} {math.sqrt(factors[name]):.1f}x"
+        for name, label in _GROUPS.items()
+        if factors.get(name, 1.0) > 1.0
+    ]
+    return ", ".join(parts) + " their stated sigma" if parts else ""
 
 
 def register(subparsers: Any) -> None:
@@ -139,6 +159,9 @@ def run(args: argparse.Namespace) -> int:
     unregistered = frames.get("placed_without_registration", 0)
     if unregistered:
         print(f"  {unregistered} placed without a registration (odometry and GNSS)")
+    widened = _widened(report.get("fusion", {}).get("variance_factors", {}))
+    if widened:
+        print(f"  weighed by their residuals: {widened}")
     coverage = report["coverage"]
     line = f"  coverage: {coverage['covered_m2']:.0f} m² seen by {coverage['min_passes']}+ passes"
     if "area" in coverage:
