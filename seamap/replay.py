@@ -28,6 +28,7 @@ from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
+from mapping.preprocess import lit_min_range
 from mapping.samples import Ping
 from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
@@ -190,6 +191,23 @@ def render(result: SurveyResult) -> tuple[np.ndarray, float, float]:
     return image, west, north
 
 
+def _unlit(
+    names: str, result: SurveyResult, ping: Ping, config: SiteConfig, params: PipelineParams
+) -> str:
+    """Why a survey whose frames were all placed has an empty mosaic: no ping reached the
+    seabed (the fan's vertical beam meets the bed beyond the range set)."""
+    p = params.preprocess
+    reach = lit_min_range(config.sonar.altitude_m, config.sonar.tilt_deg,
+                          p.vertical_aperture_deg, 0.0)  # fmt: skip
+    return (
+        f"{names}: no ping shows the seabed ({result.frames_mapped} frames placed, none lit): "
+        f"the pings reach {ping.max_range_m:.1f} m, and at {config.sonar.altitude_m:.1f} m "
+        f"above a level bed with the sonar tilted {config.sonar.tilt_deg:.0f} deg the "
+        f"vertical beam first meets it at {reach:.1f} m; set a longer [sonar] range_m or a "
+        "steeper tilt_deg"
+    )
+
+
 def stream_survey(
     pings: Callable[[], Iterator[Ping]],
     nav: NavSamples,
@@ -294,6 +312,8 @@ def replay(
     t0 = time.perf_counter()
     image, west, north = render(result)
     render_s = time.perf_counter() - t0
+    if image.size == 0:
+        raise SeamapError(_unlit(sonar_names, result, next(iter(pings())), config, params))
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -382,3 +382,19 @@ def test_the_streaming_engines_survey_end_pass_gets_the_soundings(
     [final] = seen
     assert list(final.ranges) == list(samples.ranges)
     assert [s.distance_m for s in final.ranges] == distances
+
+
+def test_a_sonar_that_never_reaches_the_seabed_ends_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 3.6 m above the bed, tilted 25 deg with a 20 deg vertical beam: the bed is first lit
+    # at about 6.3 m slant range, and the sonar is set to 5 m. Every frame is placed and
+    # none shows the seabed: one line that says why, not a raster library's traceback.
+    sim = tmp_path / "sim"
+    simulate("field", 6, sim, max_pings=25, range_m=5.0)
+    args = ["replay", "--sonar", str(sim / "sonar.oculus"), "--nav", str(sim / "nav.tlog"),
+            "--config", str(sim / "site.toml"), "--out", str(tmp_path / "o")]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no ping shows the seabed" in err[0], err
+    assert "range_m" in err[0] and "sonar.oculus" in err[0]
