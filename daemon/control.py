@@ -18,7 +18,7 @@ import socket
 from pathlib import Path
 from typing import Any, Protocol
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 log = logging.getLogger(__name__)
 

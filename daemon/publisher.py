@@ -23,7 +23,7 @@ the final mosaic. Once a survey's final tiles are out, no live tile of it follow
 The session comes and goes (``attach``/``detach``, by the daemon's supervised zenoh task);
 the caches do not, so a shore reconnecting after an outage catches up with a ``get``.
 
-Coverage (``coverage``): each survey's latest publication (``seamap.coverage``) is put on
+Coverage (``coverage``): each survey's latest publication (``daemon.coverage``) is put on
 ``seamap/{vehicle}/survey/{survey}/coverage`` (JSON) and ``.../coverage/raster`` (PNG,
 attachment ``CoverageInfo``) and kept; a ``get`` on ``.../coverage/**`` answers the kept
 ones, and for surveys mapped before this run, the final coverage of their result folder.
@@ -47,10 +47,10 @@ import numpy.typing as npt
 import rasterio
 import zenoh
 
+from daemon.coverage import CoverageMessage, final_message
+from drivers import zenoh_io
+from drivers.zenoh_io import TileInfo
 from mapping.streaming import PoseUpdate, TileUpdate
-from seamap import zenoh_io
-from seamap.coverage import CoverageMessage, final_message
-from seamap.zenoh_io import TileInfo
 
 log = logging.getLogger(__name__)
 

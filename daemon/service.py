@@ -12,7 +12,7 @@ One asyncio loop; one supervised task per concern (``daemon.supervisor``):
   ``health_interval_s``; **watchdog**: pets systemd while the loop, the recorder and the
   mapping thread are alive; **control**: the local control socket (``daemon.control``).
 - **coverage**: every ``COVERAGE_EVERY_S`` the open survey's live coverage
-  (``seamap.coverage.LiveCoverage``: each frame counted where the live map placed it)
+  (``daemon.coverage.LiveCoverage``: each frame counted where the live map placed it)
   becomes the status's ``coverage`` and a zenoh publication; with the survey's area, its
   covered fraction and gaps. The area comes with the start request (``seamap survey
   start`` sends its plan's, ``seamap ctl start --area``), else from ``[mission] area``,
@@ -23,7 +23,7 @@ One asyncio loop; one supervised task per concern (``daemon.supervisor``):
 The mapping engine runs on its own thread (``daemon.mapper``). A survey is a folder
 ``state_dir/surveys/{id}/`` with ``survey.json`` (``daemon.survey``), the recorder's
 segments, and at the end the contract's result folder, written by the survey-end pass:
-the recorded segments replayed through the single-stage pipeline (``seamap.replay``),
+the recorded segments replayed through the single-stage pipeline (``daemon.replay``),
 exactly what ``seamap replay --survey`` computes. The pass runs off the loop, after the
 survey is closed, while the daemon carries on (a new survey may already record).
 
@@ -51,11 +51,15 @@ from typing import Any
 
 import numpy as np
 
+from daemon.config import SiteConfig
+from daemon.coverage import CoverageMessage, LiveCoverage, final_message
 from daemon.health import HealthMonitor, LiveParts
 from daemon.mapper import MappingWorker
+from daemon.memory import return_large_blocks
 from daemon.notify import Notifier
 from daemon.publisher import ZenohPublisher
 from daemon.recording import SurveyRecorder
+from daemon.replay import mount_from_config, pipeline_params
 from daemon.supervisor import Supervisor
 from daemon.survey import (
     SurveyState,
@@ -65,22 +69,17 @@ from daemon.survey import (
     unfinished,
     write_state,
 )
+from drivers.errors import SeamapError
+from drivers.formats.area import SurveyArea, area_geojson, parse_area, read_area
+from drivers.formats.results import write_trajectory
+from drivers.formats.tilespill import DiskSpill
 from drivers.mavlink.link import MavlinkLink
 from drivers.oculus.link import OculusLink
+from drivers.zenoh_io import insecure_listen, open_session, session_config
 from mapping import kernels
 from mapping.coverage import SonarFan
 from mapping.samples import GnssFix, NavSample, Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
-from seamap.config import SiteConfig
-from seamap.coverage import CoverageMessage, LiveCoverage, final_message
-from seamap.errors import SeamapError
-from seamap.memory import return_large_blocks
-from seamap.plan_area import SurveyArea, area_geojson, parse_area, read_area
-from seamap.replay import mount_from_config, pipeline_params
-from seamap.results import write_trajectory
-from seamap.security import insecure_listen
-from seamap.tilespill import DiskSpill
-from seamap.zenoh_io import open_session, session_config
 
 log = logging.getLogger(__name__)
 
@@ -605,7 +604,7 @@ class Daemon:
         self._save_state(survey_dir, state)
 
     def _replay(self, survey_dir: Path, survey_id: str) -> dict[str, Any]:
-        from seamap.replay import replay_survey
+        from daemon.replay import replay_survey
 
         def progress(stage: str, done: int, total: int) -> None:
             self._pass_progress[survey_id] = f"{stage} {done}/{total}"
@@ -633,7 +632,7 @@ class Daemon:
         """Plan lanes over the survey's gaps into the survey folder (``REPLAN_FILE``), from
         where the boat ended, for the autopilot that was heard; what came of it (a
         failure is said in the summary and the log, never fails the pass)."""
-        from seamap.replan_files import replan_survey
+        from daemon.replan_files import replan_survey
 
         link = self.parts.mavlink
         firmware = "px4" if link is not None and link.stats.autopilot == "px4" else "ardupilot"

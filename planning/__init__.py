@@ -4,7 +4,7 @@ maps.
 Frames and units: positions are metres east/north in the survey's local grid frame
 (``mapping.geo.LocalFrame``); bearings are radians clockwise from grid north; widths and
 distances are metres, areas square metres, durations seconds. No files and no projections
-here: ``seamap.plan_files`` reads the area, converts to and from WGS84 and writes the
+here: ``daemon.plan_files`` reads the area, converts to and from WGS84 and writes the
 mission files.
 
 - ``planning.area``: the area (polygons with keep-out holes), its validation;
@@ -12,7 +12,7 @@ mission files.
 - ``planning.swath``: the sonar's usable swath, which spaces the lanes;
 - ``planning.lawnmower``: the lanes over the area and the path (the rules are in its doc);
 - ``planning.plan``: the planned path, its length and duration;
-- ``planning.coverage``: how much of the area the path maps;
+- ``planning.sweep``: how much of the area the path maps;
 - ``planning.gaps``: what a survey missed of the area, from the cells it saw well enough;
 - ``planning.replan``: lanes over those gaps, in the order that shortens the way there.
 
@@ -20,7 +20,6 @@ The public names of all eight are importable from here.
 """
 
 from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
-from planning.coverage import MAPPING_LEGS, Coverage, coverage, swath_cover
 from planning.gaps import AreaCoverage, area_gaps, cells_geometry
 from planning.keepouts import Keepouts
 from planning.lawnmower import (
@@ -42,6 +41,7 @@ from planning.lawnmower import (
 from planning.plan import TURN_RATE_RAD_S, Leg, LegKind, Run, SurveyPlan
 from planning.replan import GAP_MARGIN, GapGroup, GapPlan, plan_gaps
 from planning.swath import MIN_LOOK_M, Swath, sonar_swath
+from planning.sweep import MAPPING_LEGS, Coverage, coverage, swath_cover
 
 __all__ = [
     "ENTRY_CORNERS",

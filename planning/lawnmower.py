@@ -35,7 +35,7 @@ Carreras 2013, doi:10.1016/j.robot.2013.09.004) for a boat that must not enter k
   map all round a hole, which the shortest ways round between lane ends along its
   outline mostly do, the loop would be time for nothing and is left out.
 
-Coverage model (``planning.coverage``): the sonar's usable swath (``sonar_swath``) is a band
+Coverage model (``planning.sweep``): the sonar's usable swath (``sonar_swath``) is a band
 ``half_width_m`` each side of every leg the boat drives straight while mapping, plus a disc
 of that radius at each waypoint between two mapping legs. With a side overlap of at least
 50% every seabed point is within the swath of two lanes run in opposite directions, and the
@@ -62,9 +62,9 @@ import numpy.typing as npt
 import shapely
 
 from planning.area import EPS_M, Area, PlanningError, Point, validate_area
-from planning.coverage import swath_cover
 from planning.keepouts import Keepouts
 from planning.plan import Leg, LegKind, Run, SurveyPlan
+from planning.sweep import swath_cover
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -42,7 +42,7 @@ bearings radians clockwise from grid north, durations seconds, areas square metr
 - A gap no lane of ``MIN_RUN_M`` reaches (water within the clearance of a hole, which
   only the swath from outside can map) is *unreachable*: listed, not swept.
 
-What the plan covers of the gaps is ``planning.coverage``'s swath model over the path.
+What the plan covers of the gaps is ``planning.sweep``'s swath model over the path.
 """
 
 from __future__ import annotations
@@ -55,10 +55,10 @@ from dataclasses import dataclass, replace
 import shapely
 
 from planning.area import Area, PlanningError, Point, validate_area
-from planning.coverage import Coverage, swath_cover
 from planning.keepouts import Keepouts
 from planning.lawnmower import LOOP_MIN_M2, MIN_RUN_M, connect, once_round, sweep_options
 from planning.plan import Leg, LegKind, Run, SurveyPlan
+from planning.sweep import Coverage, swath_cover
 
 GAP_MARGIN = 0.1
 """Each gap is grown by this fraction of the sonar's usable half swath into its target."""

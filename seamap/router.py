@@ -33,10 +33,16 @@ from typing import TextIO
 
 import zenoh
 
-from seamap.config import SiteConfig, ZenohConfig
-from seamap.errors import SeamapError
-from seamap.security import insecure_listen
-from seamap.zenoh_io import ROOT, alive_key, open_session, parse_alive_key, with_endpoints
+from daemon.config import SiteConfig, ZenohConfig
+from drivers.errors import SeamapError
+from drivers.zenoh_io import (
+    ROOT,
+    alive_key,
+    insecure_listen,
+    open_session,
+    parse_alive_key,
+    with_endpoints,
+)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 STATUS_INTERVAL_S = 10.0

@@ -46,7 +46,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
+from drivers.zenoh_io import id_problem
 
 CA_DAYS = 3650
 CERT_DAYS = 825
@@ -356,8 +357,9 @@ _HEADER = (
 
 
 def _check_vehicle(vehicle: str) -> None:
-    if not vehicle or "/" in vehicle or any(c in vehicle for c in "*$?# "):
-        raise SeamapError(f"--vehicle {vehicle!r}: a non-empty id without '/', '*', '$', '?', '#'")
+    problem = id_problem(vehicle)
+    if problem is not None:
+        raise SeamapError(f"--vehicle {vehicle!r}: {problem}")
 
 
 def _check_common(shores: int, port: int, hosts: list[str]) -> list[str]:
@@ -553,30 +555,6 @@ def _write_fleet_set(
         users,
         port,
     )
-
-
-_LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
-
-
-def insecure_listen(endpoints: list[str]) -> list[str]:
-    """The endpoints that listen unencrypted on an address other hosts can reach (plain
-    TCP, UDP or WebSocket on anything but loopback)."""
-    found = []
-    for endpoint in endpoints:
-        locator = endpoint.split("#", 1)[0].split("?", 1)[0]
-        protocol, _, address = locator.partition("/")
-        if protocol not in ("tcp", "udp", "ws"):
-            continue
-        host = address.rpartition(":")[0].strip("[]")
-        if host in _LOOPBACK_NAMES:
-            continue
-        try:
-            if ipaddress.ip_address(host).is_loopback:
-                continue
-        except ValueError:
-            pass  # a host name other than localhost: reachable from elsewhere
-        found.append(endpoint)
-    return found
 
 
 _Set = TypeVar("_Set")

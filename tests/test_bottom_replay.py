@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seamap.config import load_config
-from seamap.replay import replay
+from daemon.config import load_config
+from daemon.replay import replay
 from tools.sim.survey import simulate
 
 

@@ -226,3 +226,20 @@ def _state(pid: int) -> str:
         return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split() or ["?"])[0]
     except OSError:
         return "Z"
+
+
+def test_the_product_loads_no_tool_and_finds_the_installed_ones() -> None:
+    # `seamap run` (the boat's service) builds its parser without importing tools; the
+    # development tools' commands come in through the seamap.commands entry points.
+    code = (
+        "import sys\n"
+        "from seamap.cli import build_parser\n"
+        "parser = build_parser(['run', '--help'])\n"
+        "loaded = sorted(m for m in sys.modules if m == 'tools' or m.startswith('tools.'))\n"
+        "print(loaded)\n"
+        "build_parser(['simulate', '--help'])\n"
+        "print('tools.commands.simulate' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["[]", "True"]

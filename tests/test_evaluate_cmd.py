@@ -119,8 +119,8 @@ def test_taped_quadrats_stand_in_for_the_truth(
     evaluated: tuple[Path, Path, dict[str, Any], str], tmp_path: Path
 ) -> None:
     from mapping.geo import LocalFrame
-    from seamap.evaluation.modes import ModeRun, quadrat_spacing, read_quadrats
-    from tools.evaluate import load_truth, quadrats_of
+    from tools.evaluation.modes import ModeRun, quadrat_spacing, read_quadrats
+    from tools.evaluation.truth import load_truth, quadrats_of
 
     sim, out, tables, _ = evaluated
     truth = load_truth(sim / "truth.json")

@@ -17,14 +17,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from daemon.config import ZenohConfig
 from daemon.publisher import ZenohPublisher
+from drivers.errors import SeamapError
+from drivers.zenoh_io import open_session
 from mapping.mosaic import TileGrid
 from mapping.streaming import PoseUpdate, TileUpdate
-from seamap.config import ZenohConfig
-from seamap.errors import SeamapError
 from seamap.router import Router, router_settings
 from seamap.shore import ShoreSettings, ShoreStation
-from seamap.zenoh_io import open_session
 from tests.ports import free_tcp_port
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")

@@ -29,13 +29,9 @@ import pytest
 import zenoh
 from cryptography import x509
 
+from daemon.config import ZenohConfig, config_from_dict, load_config
 from daemon.publisher import ZenohPublisher
-from mapping.streaming import TileUpdate
-from seamap.config import ZenohConfig, config_from_dict, load_config
-from seamap.router import router_settings
-from seamap.security import FleetSecuritySet, init_fleet_security
-from seamap.shore import ShoreSettings, ShoreStation
-from seamap.zenoh_io import (
+from drivers.zenoh_io import (
     control_key,
     json_bytes,
     open_session,
@@ -44,6 +40,10 @@ from seamap.zenoh_io import (
     session_config,
     tiles_selector,
 )
+from mapping.streaming import TileUpdate
+from seamap.router import router_settings
+from seamap.security import FleetSecuritySet, init_fleet_security
+from seamap.shore import ShoreSettings, ShoreStation
 from tests.ports import free_tcp_port
 from tests.test_fleet import BOATS, SURVEY, _holds, _pose, _tile
 

@@ -1,4 +1,4 @@
-"""The daemon's live coverage (``seamap.coverage.LiveCoverage``): frames given one at a
+"""The daemon's live coverage (``daemon.coverage.LiveCoverage``): frames given one at a
 time, as the live map turns them final, count as the survey-end pass counts them; an
 engine started afresh in another local frame lands on the same cells; the publication's
 summary, raster and gaps; and the ``[mission]`` table and ``seamap ctl start --area``."""
@@ -15,15 +15,15 @@ import pytest
 import shapely
 from PIL import Image
 
+from daemon.config import CoverageConfig, load_config
+from daemon.coverage import LiveCoverage, area_coverage, coverage_message, coverage_params
+from drivers.formats.area import SurveyArea, area_geojson, parse_area
+from drivers.zenoh_io import CoverageInfo, parse_coverage_summary
 from mapping.coverage import CoverageParams, SeabedCoverage, SonarFan
 from mapping.frames import SonarMount
 from mapping.geo import LocalFrame
 from mapping.preprocess import lit_min_range
 from seamap.cli import main
-from seamap.config import CoverageConfig, load_config
-from seamap.coverage import LiveCoverage, area_coverage, coverage_message, coverage_params
-from seamap.plan_area import SurveyArea, area_geojson, parse_area
-from seamap.zenoh_io import CoverageInfo, parse_coverage_summary
 
 FRAME = LocalFrame.around(43.1, 5.9)
 TILT = math.radians(15.0)

@@ -40,12 +40,13 @@ from mavsdk.plugins.telemetry_server import (
     VelocityNed,
 )
 
+from daemon import request
+from daemon.config import SiteConfig, ZenohConfig, config_from_dict
 from drivers import mission
+from drivers.errors import SeamapError
 from drivers.mission import Firmware, RawItem
+from drivers.zenoh_io import control_key, json_bytes, open_session
 from seamap.cli import build_parser, main
-from seamap.config import SiteConfig, ZenohConfig, config_from_dict
-from seamap.errors import SeamapError
-from seamap.zenoh_io import control_key, json_bytes, open_session
 from tests.ports import free_tcp_port, free_udp_port
 
 HOME = (47.3977419, 8.5455938, 488.25)  # lat, lon (degrees), AMSL (m)
@@ -518,24 +519,24 @@ def test_the_daemon_is_asked_to_open_a_survey(daemon: tuple[FakeDaemon, int]) ->
         {"daemon": {"vehicle": VEHICLE},
          "zenoh": {"listen": [f"tcp/0.0.0.0:{zenoh_port}"], "multicast_scouting": False}}
     )  # fmt: skip
-    target = mission.daemon_target(config)
+    target = request.daemon_target(config)
     assert target is not None and target.zenoh.connect == [f"tcp/127.0.0.1:{zenoh_port}"]
-    assert mission.request_survey_start(target, timeout_s=10) == mission.DaemonAnswer("X")
+    assert request.request_survey_start(target, timeout_s=10) == request.DaemonAnswer("X")
     assert fake.requests == [{"action": "start"}]
     # Or named on the command line.
-    explicit = mission.daemon_target(None, f"tcp/127.0.0.1:{zenoh_port}", VEHICLE)
+    explicit = request.daemon_target(None, f"tcp/127.0.0.1:{zenoh_port}", VEHICLE)
     assert explicit is not None
-    assert mission.request_survey_start(explicit, timeout_s=10).survey == "X"
+    assert request.request_survey_start(explicit, timeout_s=10).survey == "X"
 
 
 def test_daemon_targets_are_checked_before_anything_moves() -> None:
-    assert mission.daemon_target(None) is None
+    assert request.daemon_target(None) is None
     with pytest.raises(SeamapError, match="--daemon needs --vehicle"):
-        mission.daemon_target(None, "tcp/127.0.0.1:7447")
+        request.daemon_target(None, "tcp/127.0.0.1:7447")
     with pytest.raises(SeamapError, match="not a zenoh endpoint"):
-        mission.daemon_target(None, "127.0.0.1:7447", VEHICLE)
+        request.daemon_target(None, "127.0.0.1:7447", VEHICLE)
     with pytest.raises(SeamapError, match="vehicle 'a/b'"):
-        mission.daemon_target(SiteConfig(), vehicle="a/b")
+        request.daemon_target(SiteConfig(), vehicle="a/b")
 
 
 def test_survey_start_on_the_command_line(
@@ -666,9 +667,9 @@ def test_survey_plan_arguments(
                 "distance_m": 1234.0, "duration_s": 1028.0, "area_m2": 900.0,
                 "covered_m2": 880.0, "coverage": 0.978, "files": [str(out)]}  # fmt: skip
 
-    planner = types.ModuleType("seamap.plan_files")
+    planner = types.ModuleType("daemon.plan_files")
     planner.plan_survey = plan_survey  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "seamap.plan_files", planner)
+    monkeypatch.setitem(sys.modules, "daemon.plan_files", planner)
     assert args.handler(args) == 0
     assert "overlap" not in calls[0] and calls[0]["spacing_m"] == 2.5
     assert calls[0]["firmware"] == "px4" and calls[0]["entry"] == "sw"

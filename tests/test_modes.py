@@ -9,7 +9,8 @@ from typing import Any
 
 import pytest
 
-from seamap.replay import replay
+from daemon.replay import replay
+from tools.evaluation.truth import truth_scorer
 from tools.sim import simulate
 
 pytestmark = pytest.mark.slow
@@ -27,7 +28,7 @@ def accuracy(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, An
             survey / "site.toml",
             mode,
             survey / mode,
-            truth=survey / "truth.json",
+            scorer=truth_scorer(survey / "truth.json"),
         )
         out[mode] = report["accuracy"]
     return out

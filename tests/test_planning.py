@@ -20,6 +20,11 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.sparse.csgraph import shortest_path
 
 import planning.lawnmower
+from daemon.config import SiteConfig, SonarConfig
+from daemon.plan_files import DEFAULT_OVERLAP, read_plan, swath_from_config
+from daemon.plan_files import plan_survey as plan_files
+from drivers.errors import SeamapError
+from drivers.formats.area import parse_area
 from mapping.geo import LocalFrame
 from planning import (
     Area,
@@ -35,11 +40,6 @@ from planning import (
     sonar_swath,
     validate_area,
 )
-from seamap.config import SiteConfig, SonarConfig
-from seamap.errors import SeamapError
-from seamap.plan_area import parse_area
-from seamap.plan_files import DEFAULT_OVERLAP, read_plan, swath_from_config
-from seamap.plan_files import plan_survey as plan_files
 
 HALF = swath_from_config(SiteConfig()).half_width_m
 SPACING = 2 * HALF * (1 - DEFAULT_OVERLAP)

@@ -19,8 +19,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from seamap.replay import replay
-from tools.evaluate import load_truth
+from daemon.replay import replay
+from tools.evaluation.truth import load_truth
 from tools.sim import simulate
 
 pytestmark = pytest.mark.slow

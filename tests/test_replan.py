@@ -15,6 +15,10 @@ import numpy as np
 import pytest
 import shapely
 
+from daemon.config import SiteConfig
+from daemon.plan_files import read_plan, swath_from_config
+from daemon.replan_files import replan_survey
+from drivers.formats.results import write_coverage_tif, write_geotiff, write_trajectory
 from drivers.mission import load_plan
 from mapping.coverage import CoverageGrid, SeabedCoverage, SonarFan
 from mapping.frames import SonarMount
@@ -23,10 +27,6 @@ from mapping.preprocess import lit_min_range
 from planning import Area, LegKind, Polygon, cells_geometry
 from planning.replan import plan_gaps
 from seamap.cli import main
-from seamap.config import SiteConfig
-from seamap.plan_files import read_plan, swath_from_config
-from seamap.replan_files import replan_survey
-from seamap.results import write_coverage_tif, write_geotiff, write_trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = LocalFrame.around(43.1, 5.9)

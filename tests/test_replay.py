@@ -16,9 +16,9 @@ import rasterio
 import shapely
 from pyproj import Transformer
 
-from mapping.metrics import locate_quadrats, quadrat_spacing_error
 from seamap.cli import main
-from tools.evaluate import quadrats_of
+from tools.evaluation.metrics import locate_quadrats, quadrat_spacing_error
+from tools.evaluation.truth import quadrats_of
 from tools.sim import simulate
 
 
@@ -320,9 +320,9 @@ def nav_with_soundings(survey: Path, path: Path) -> tuple[Path, list[float]]:
 
 
 def test_replay_gets_the_soundings_and_the_echosounders_mount(survey: Path, tmp_path: Path) -> None:
+    from daemon.config import load_config
+    from daemon.replay import pipeline_params, read_navigation
     from mapping.bottom import BottomParams, EchosounderMount
-    from seamap.config import load_config
-    from seamap.replay import pipeline_params, read_navigation
 
     nav, distances = nav_with_soundings(survey, tmp_path / "nav.tlog")
     config = load_config(site_with_echosounder(survey, tmp_path / "site.toml"))
@@ -350,8 +350,8 @@ def test_the_streaming_engines_survey_end_pass_gets_the_soundings(
     import itertools
 
     import mapping.streaming
-    from seamap.config import load_config
-    from seamap.replay import (
+    from daemon.config import load_config
+    from daemon.replay import (
         mount_from_config,
         ping_source,
         pipeline_params,

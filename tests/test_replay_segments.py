@@ -12,14 +12,14 @@ from pathlib import Path
 import pytest
 import rasterio
 
+from daemon.config import load_config
 from daemon.recording import nav_name, sonar_name
+from daemon.replay import replay, replay_survey
+from drivers.errors import SeamapError
 from drivers.mavlink import NavLogError, read_nav_log
 from drivers.mavlink.framing import ScanTally, scan_tlog
 from drivers.oculus.logfile import ITEM_TYPE_OCULUS, OculusLogWriter, iter_log_items
 from seamap.cli import main
-from seamap.config import load_config
-from seamap.errors import SeamapError
-from seamap.replay import replay, replay_survey
 from tests.drivers import mavlink_fixtures as fx
 from tools.sim import simulate
 

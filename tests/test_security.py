@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 import zenoh
 
-from seamap.config import ZenohConfig, config_from_dict, dump_config
-from seamap.zenoh_io import control_key, json_bytes, open_session, pose_key, session_config
+from daemon.config import ZenohConfig, config_from_dict, dump_config
+from drivers.zenoh_io import control_key, json_bytes, open_session, pose_key, session_config
 from tests.daemon.harness import free_udp_port
 from tests.ports import free_tcp_port
 from tests.test_cli import assert_one_line_error, seamap

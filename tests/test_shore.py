@@ -23,10 +23,9 @@ import pytest
 import rasterio
 import zenoh
 
-from seamap.config import ZenohConfig, config_from_dict
-from seamap.errors import SeamapError
-from seamap.shore import ShoreSettings, ShoreStation, shore_settings
-from seamap.zenoh_io import (
+from daemon.config import ZenohConfig, config_from_dict
+from drivers.errors import SeamapError
+from drivers.zenoh_io import (
     TileInfo,
     alive_key,
     encode_tile,
@@ -37,6 +36,7 @@ from seamap.zenoh_io import (
     tile_key,
     tiles_selector,
 )
+from seamap.shore import ShoreSettings, ShoreStation, shore_settings
 from tests.ports import free_tcp_port as free_port
 
 VEHICLE = "boat1"

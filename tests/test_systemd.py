@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from seamap.config import DaemonConfig, MavlinkConfig, SonarConfig, load_config
+from daemon.config import DaemonConfig, MavlinkConfig, SonarConfig, load_config
 
 SYSTEMD_DIR = Path(__file__).resolve().parents[1] / "systemd"
 UNIT = SYSTEMD_DIR / "seamap.service"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from seamap.tilespill import DiskSpill, SpillError
+from drivers.formats.tilespill import DiskSpill, SpillError
 
 
 def test_tiles_round_trip_through_disk(tmp_path: Path) -> None:
@@ -62,6 +62,6 @@ def test_a_damaged_tile_file_is_named_in_one_line(tmp_path: Path) -> None:
 
 
 def test_large_blocks_are_given_back_to_the_system() -> None:
-    from seamap.memory import return_large_blocks
+    from daemon.memory import return_large_blocks
 
     assert return_large_blocks()  # glibc takes the setting (CI and the boats run glibc)

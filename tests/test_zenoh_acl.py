@@ -2,7 +2,7 @@
 TLS, user/password authentication and access control (eclipse-zenoh 1.10).
 
 Real sessions on 127.0.0.1 (multicast scouting off, free ports), opened the way the daemon
-opens its own (``[zenoh] config_file`` through ``seamap.zenoh_io``) from copies of the
+opens its own (``[zenoh] config_file`` through ``drivers.zenoh_io``) from copies of the
 example files in which only the install paths are changed; the certificates are made with
 the openssl commands README.md gives. The shore may subscribe, get tiles and send survey
 requests; nothing it puts or deletes gets past the boat; a peer without the password, or
@@ -29,9 +29,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from seamap.config import ZenohConfig
-from seamap.errors import SeamapError
-from seamap.zenoh_io import (
+from daemon.config import ZenohConfig
+from drivers.errors import SeamapError
+from drivers.zenoh_io import (
     PLACEHOLDER,
     TileInfo,
     alive_key,

@@ -6,9 +6,9 @@
 ``SURVEYS`` below is the matrix: one row per survey (a ``tools.sim`` scenario, a seed and
 scenario overrides: ping rate, autopilot flavour, GNSS outage, current, cut). Each survey
 is simulated into ``DIR/surveys/NAME/sim`` (``tools.sim.survey.simulate``), replayed in
-each mode in-process through ``seamap.replay.replay`` with its truth (the result folders,
+each mode in-process through ``daemon.replay.replay`` with its truth (the result folders,
 with their report.json, in ``DIR/surveys/NAME/MODE``), and scored from the reports
-(``tools.evaluate``): lane disagreement, quadrat spacing, array offsets, relative pose
+(``tools.evaluation.truth``): lane disagreement, quadrat spacing, array offsets, relative pose
 error over 10 s, ATE, frames mapped, seconds per frame; for ``streaming`` also the live
 map. ``DIR/matrix.json`` holds every number, ``DIR/matrix.md`` the tables
 (``tools.accuracy_report``); both are rewritten as each survey finishes. A survey that
@@ -199,7 +199,8 @@ def _entry(row: Survey) -> dict[str, Any]:
 def run_survey(row: Survey, modes: Sequence[str], out: Path, keep: bool = False) -> dict[str, Any]:
     """Simulate one survey and replay it in each mode; its entry in matrix.json. Errors
     are caught: the survey's (or a mode's) ``error`` says what went wrong."""
-    from seamap.replay import replay
+    from daemon.replay import replay
+    from tools.evaluation.truth import truth_scorer
     from tools.sim.survey import simulate
 
     folder = out / "surveys" / row.name
@@ -226,7 +227,7 @@ def run_survey(row: Survey, modes: Sequence[str], out: Path, keep: bool = False)
                 sim / "site.toml",
                 mode,
                 folder / mode,
-                truth=sim / "truth.json",
+                scorer=truth_scorer(sim / "truth.json"),
             )
             entry["modes"][mode] = mode_metrics(report)
         except Exception as exc:  # a failing mode is recorded, not fatal

@@ -42,11 +42,11 @@ from typing import Any
 import numpy as np
 import rasterio
 
+from daemon.config import SiteConfig, ZenohConfig, config_from_dict, dump_config, load_config
 from daemon.control import request
+from drivers.errors import SeamapError
 from drivers.oculus.logfile import iter_pings
-from seamap.config import SiteConfig, ZenohConfig, config_from_dict, dump_config, load_config
-from seamap.errors import SeamapError
-from seamap.zenoh_io import control_key, open_session
+from drivers.zenoh_io import control_key, open_session
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate
 
@@ -471,7 +471,8 @@ def _tell_shore(shore_tif: Path, same: bool) -> None:
 
 
 def _accuracy(sim: Path, folder: Path, config: Any, out: Path) -> None:
-    from seamap.replay import replay_survey
+    from daemon.replay import replay_survey
+    from tools.evaluation.truth import truth_scorer
 
     truth = json.loads((sim / "truth.json").read_text())
     stamped = {p.ping_id: p.time for seg in sorted(folder.glob("sonar-*.oculus"))
@@ -480,7 +481,7 @@ def _accuracy(sim: Path, folder: Path, config: Any, out: Path) -> None:
     retimed = out / "truth-as-received.json"
     out.mkdir(parents=True, exist_ok=True)
     retimed.write_text(json.dumps(dict(truth, pings=pings)))
-    report = replay_survey(folder, config, out, truth=retimed)
+    report = replay_survey(folder, config, out, scorer=truth_scorer(retimed))
     accuracy = report["accuracy"]
     trajectory, spacing = accuracy["trajectory"], accuracy.get("quadrat_spacing")
     print(f"      trajectory error {trajectory['rmse']:.2f} m (GPS-limited), "

@@ -173,15 +173,15 @@ def measure(
 
 def run_case(row: Survey, where: str, gap: float, out: Path) -> dict[str, Any]:
     """One survey, one silence: the live map and the survey-end pass measured."""
-    from mapping.pipeline import SurveyResult
-    from seamap.config import load_config
-    from seamap.replay import (
+    from daemon.config import load_config
+    from daemon.replay import (
         mount_from_config,
         ping_source,
         pipeline_params,
         read_navigation,
         stream_survey,
     )
+    from mapping.pipeline import SurveyResult
 
     sim = out / "sims" / row.name
     if not (sim / "truth.json").exists():

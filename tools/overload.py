@@ -30,11 +30,11 @@ from typing import Any
 
 import numpy as np
 
+from daemon.config import ZenohConfig
 from daemon.control import request
+from drivers.errors import SeamapError
 from drivers.oculus.logfile import LogReadReport, iter_pings
-from seamap.config import ZenohConfig
-from seamap.errors import SeamapError
-from seamap.zenoh_io import open_session, pose_key
+from drivers.zenoh_io import open_session, pose_key
 from tools.demo import _daemon_config, _free_port
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate

@@ -23,16 +23,16 @@ from typing import Any
 
 import numpy as np
 
-from seamap.evaluation import paper
-from seamap.evaluation.blending import BLENDING_NAMES
-from seamap.evaluation.registration import BASELINE_NAMES
-from seamap.evaluation.report import METRIC_KEYS, MODE_NAMES
+from tools.evaluation import paper
+from tools.evaluation.blending import BLENDING_NAMES
+from tools.evaluation.registration import BASELINE_NAMES
+from tools.evaluation.report import METRIC_KEYS, MODE_NAMES
 
 
 def evaluate_seed(out: Path, seed: int, max_pings: int | None) -> dict[str, Any]:
     """Simulate and evaluate one survey (in its own process); its tables."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from seamap.evaluation.run import evaluate_survey, resolve_inputs
+    from tools.evaluation.run import evaluate_survey, resolve_inputs
     from tools.sim import simulate
 
     sim = out / f"sim-s{seed}"

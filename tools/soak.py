@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from daemon.config import ZenohConfig
+from drivers.errors import SeamapError
 from drivers.oculus.logfile import iter_pings
-from seamap.config import ZenohConfig
-from seamap.errors import SeamapError
 from tools.demo import SEAMAP, _daemon_config, _free_port, _status
 from tools.emulators.playback import SurveyPlayback
 from tools.sim import simulate

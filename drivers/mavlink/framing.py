@@ -35,7 +35,7 @@ from typing import Any, Protocol
 from pymavlink import DFReader
 from pymavlink.dialects.v20 import all as mavlink
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 Buffer = bytes | mmap.mmap
 

@@ -34,11 +34,14 @@ from drivers.mavlink.framing import (
     scan_tlog,
 )
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, RangeSample
-from seamap.config import HEADING_SOURCES, IMU_SOURCES
 
 __all__ = ["NavLog", "NavLogError", "NavReadReport", "read_nav_log", "summarize_nav_log"]
 
 T = TypeVar("T")
+
+
+HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")
+IMU_SOURCES = ("auto", "highres", "scaled", "scaled2", "scaled3", "raw")
 
 
 @dataclass

@@ -4,20 +4,22 @@ A survey plan is a QGroundControl ``.plan`` file. ``load_plan`` reads it; ``star
 connects to the autopilot, checks that it is ready, uploads the plan as raw
 MISSION_ITEM_INTs, reads them back and compares them with what was sent, arms and starts
 the mission. ``mission_status``, ``pause_survey`` (HOLD), ``resume_survey`` (AUTO again)
-and ``abort_survey`` (RTL) follow and steer it. ``request_survey_start`` then asks the boat
-daemon, over zenoh, to open a survey.
+and ``abort_survey`` (RTL) follow and steer it. (The client that asks the boat daemon over
+zenoh to open a survey is the daemon's own: ``daemon.request``.)
 
-``plan`` reads ``.plan`` files; ``items`` turns a plan into the raw items to upload and
-checks what the autopilot reads back; ``mavsdk_link`` holds the connection URLs and the
-MAVSDK session with its one bridge to asyncio; ``start`` starts a survey; ``steer``
-follows and steers it; ``daemon_request`` asks the daemon to open a survey.
+``drivers.formats.qgc_plan`` reads ``.plan`` files; ``items`` turns a plan into the raw
+items to upload and checks what the autopilot reads back; ``mavsdk_link`` holds the
+connection URLs and the MAVSDK session with its one bridge to asyncio; ``start`` starts a
+survey; ``steer`` follows and steers it.
 """
 
-from drivers.mission.daemon_request import (
-    DaemonAnswer,
-    DaemonTarget,
-    daemon_target,
-    request_survey_start,
+from drivers.formats.qgc_plan import (
+    GLOBAL_FRAMES,
+    LOCAL_FRAMES,
+    Firmware,
+    Plan,
+    PlanItem,
+    load_plan,
 )
 from drivers.mission.items import (
     MAV_CMD_NAV_WAYPOINT,
@@ -28,7 +30,6 @@ from drivers.mission.items import (
     mission_items,
 )
 from drivers.mission.mavsdk_link import ATTEMPTS, DEFAULT_TIMEOUT_S, URL_FORMS, mavsdk_url
-from drivers.mission.plan import GLOBAL_FRAMES, LOCAL_FRAMES, Firmware, Plan, PlanItem, load_plan
 from drivers.mission.start import MissionStart, Readiness, start_survey
 from drivers.mission.steer import (
     MISSION_STATES,
@@ -50,8 +51,6 @@ __all__ = [
     "MAV_FRAME_MISSION",
     "MISSION_STATES",
     "URL_FORMS",
-    "DaemonAnswer",
-    "DaemonTarget",
     "Firmware",
     "MissionStart",
     "MissionStatus",
@@ -60,7 +59,6 @@ __all__ = [
     "RawItem",
     "Readiness",
     "abort_survey",
-    "daemon_target",
     "load_plan",
     "mavsdk_url",
     "mismatch",
@@ -68,7 +66,6 @@ __all__ = [
     "mission_progress_from",
     "mission_status",
     "pause_survey",
-    "request_survey_start",
     "resume_survey",
     "start_survey",
 ]

@@ -14,7 +14,7 @@ from typing import Any
 
 from mavsdk.plugins.mission_raw import MissionItem
 
-from drivers.mission.plan import GLOBAL_FRAMES, LOCAL_FRAMES, Firmware, Plan, PlanItem
+from drivers.formats.qgc_plan import GLOBAL_FRAMES, LOCAL_FRAMES, Firmware, Plan, PlanItem
 
 MAV_CMD_NAV_WAYPOINT = 16
 MAV_FRAME_GLOBAL = 0

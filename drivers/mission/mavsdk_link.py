@@ -28,8 +28,8 @@ from mavsdk.plugins.action import Action
 from mavsdk.plugins.mission_raw import MissionRaw
 from mavsdk.plugins.telemetry import Telemetry
 
-from drivers.mission.plan import Firmware
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
+from drivers.formats.qgc_plan import Firmware
 
 log = logging.getLogger(__name__)
 

@@ -11,10 +11,10 @@ import asyncio
 import math
 from dataclasses import dataclass
 
+from drivers.errors import SeamapError
+from drivers.formats.qgc_plan import Firmware, Plan
 from drivers.mission.items import RawItem, mismatch, mission_items
 from drivers.mission.mavsdk_link import DEFAULT_TIMEOUT_S, Link, connected
-from drivers.mission.plan import Firmware, Plan
-from seamap.errors import SeamapError
 
 _FIX_NAMES = ("no GPS", "no fix", "2D fix", "3D fix", "DGPS fix", "RTK float", "RTK fixed")
 

@@ -16,9 +16,9 @@ from typing import Any
 
 from mavsdk.plugins.mavlink_direct import MavlinkDirect
 
+from drivers.errors import SeamapError
+from drivers.formats.qgc_plan import Firmware
 from drivers.mission.mavsdk_link import DEFAULT_TIMEOUT_S, Link, connected, hand_over
-from drivers.mission.plan import Firmware
-from seamap.errors import SeamapError
 
 log = logging.getLogger(__name__)
 

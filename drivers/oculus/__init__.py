@@ -17,6 +17,7 @@ from drivers.oculus.ping import (
     PING_V2_STRUCT_SIZE,
     PingInfo,
     build_simple_ping,
+    parse_message,
     parse_simple_ping,
     read_ping_info,
 )
@@ -37,7 +38,6 @@ from drivers.oculus.protocol import (
     SimpleFire,
     StatusMessage,
     message_name,
-    parse_message,
 )
 
 __all__ = [

@@ -23,6 +23,7 @@ import logging
 import time
 from collections.abc import AsyncGenerator, Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from drivers.oculus.framer import OculusFramer
 from drivers.oculus.ping import parse_simple_ping
@@ -38,7 +39,6 @@ from drivers.oculus.protocol import (
     StatusMessage,
 )
 from mapping.samples import Ping
-from seamap.config import SonarConfig
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,32 @@ class _StatusWatch(asyncio.DatagramProtocol):
         self._on_status(status, str(addr[0]))
 
 
+class SonarSettings(Protocol):
+    """What the link reads of the site's ``[sonar]`` table (``daemon.config.SonarConfig``
+    has these): the sonar's address and ports, and how to fire it."""
+
+    @property
+    def address(self) -> str: ...
+    @property
+    def tcp_port(self) -> int: ...
+    @property
+    def status_port(self) -> int: ...
+    @property
+    def frequency(self) -> str: ...
+    @property
+    def range_m(self) -> float: ...
+    @property
+    def gain_percent(self) -> float: ...
+    @property
+    def gamma(self) -> int: ...
+    @property
+    def ping_rate_hz(self) -> float: ...
+    @property
+    def data_bits(self) -> int: ...
+    @property
+    def send_gain(self) -> bool: ...
+
+
 class OculusLink:
     """Asyncio client of one Oculus sonar.
 
@@ -178,7 +204,7 @@ class OculusLink:
         self._fire_changed: asyncio.Event | None = None
 
     @staticmethod
-    def fire_from_config(config: SonarConfig) -> FireSettings:
+    def fire_from_config(config: SonarSettings) -> FireSettings:
         """The SimpleFire settings the ``[sonar]`` table asks for."""
         rates = {rate.hz: rate for rate in PingRate if rate != PingRate.STANDBY}
         return FireSettings(
@@ -196,7 +222,7 @@ class OculusLink:
     @classmethod
     def from_config(
         cls,
-        config: SonarConfig,
+        config: SonarSettings,
         *,
         fire: FireSettings | None = None,
         timing: LinkTiming | None = None,

@@ -30,7 +30,12 @@ from drivers.oculus.protocol import (
     MessageHeader,
     MessageId,
     OculusFormatError,
+    RawMessage,
     SimpleFire,
+    StatusMessage,
+    _as_bytes,
+    _check_length,
+    message_name,
 )
 from mapping.samples import Ping
 
@@ -381,3 +386,22 @@ def build_simple_ping(
     message[struct_size : struct_size + len(bearing_bytes)] = bearing_bytes
     message[image_offset:] = image_bytes
     return bytes(message)
+
+
+def parse_message(
+    message: bytes | bytearray | memoryview, time: float = 0.0
+) -> StatusMessage | SimpleFire | Ping | RawMessage:
+    """Decode one whole message (header + payload) by its msgId.
+
+    SimplePingResult becomes a ``mapping.samples.Ping`` stamped with ``time`` (UNIX s);
+    messages whose layout we do not decode come back as ``RawMessage``.
+    """
+    header = MessageHeader.unpack(message)
+    if header.msg_id == MessageId.STATUS:
+        return StatusMessage.unpack(message)
+    if header.msg_id == MessageId.SIMPLE_FIRE:
+        return SimpleFire.unpack(message)
+    if header.msg_id == MessageId.SIMPLE_PING_RESULT:
+        return parse_simple_ping(message, time)
+    _check_length(message, header, f"{message_name(header.msg_id)} message")
+    return RawMessage(header, _as_bytes(message[HEADER_SIZE : header.message_size]))

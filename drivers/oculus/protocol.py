@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 from typing import TYPE_CHECKING
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 if TYPE_CHECKING:
-    from mapping.samples import Ping
+    pass
 
 OCULUS_ID = 0x4F53
 OCULUS_MAGIC = b"SO"  # OCULUS_ID as it appears on the wire (little-endian)
@@ -397,25 +397,3 @@ class RawMessage:
 
     header: MessageHeader
     payload: bytes
-
-
-def parse_message(
-    message: bytes | bytearray | memoryview, time: float = 0.0
-) -> StatusMessage | SimpleFire | Ping | RawMessage:
-    """Decode one whole message (header + payload) by its msgId.
-
-    SimplePingResult becomes a ``mapping.samples.Ping`` stamped with ``time`` (UNIX s);
-    messages whose layout we do not decode come back as ``RawMessage``.
-    """
-    header = MessageHeader.unpack(message)
-    if header.msg_id == MessageId.STATUS:
-        return StatusMessage.unpack(message)
-    if header.msg_id == MessageId.SIMPLE_FIRE:
-        return SimpleFire.unpack(message)
-    if header.msg_id == MessageId.SIMPLE_PING_RESULT:
-        # ping.py builds on this module, so import it here rather than at the top.
-        from drivers.oculus.ping import parse_simple_ping
-
-        return parse_simple_ping(message, time)
-    _check_length(message, header, f"{message_name(header.msg_id)} message")
-    return RawMessage(header, _as_bytes(message[HEADER_SIZE : header.message_size]))

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 
 def register(subparsers: Any) -> None:
@@ -33,15 +33,15 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from daemon.config import load_config
     from daemon.control import request
-    from seamap.config import load_config
 
     config = load_config(args.config)
     extra: dict[str, Any] = {}
     if args.area is not None:
         if args.action != "start":
             raise SeamapError(f"--area goes with start, not {args.action}")
-        from seamap.plan_area import area_geojson, read_area
+        from drivers.formats.area import area_geojson, read_area
 
         extra["area"] = area_geojson(read_area(args.area))
     reply = request(Path(config.daemon.state_dir) / "control.sock", args.action, **extra)

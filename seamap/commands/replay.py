@@ -6,10 +6,14 @@ import argparse
 import math
 import sys
 import time
+from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
+
+if TYPE_CHECKING:
+    from daemon.replay import Scorer
 
 MODES = ("single-stage", "two-stage", "fmt-only", "gps-only", "streaming")
 
@@ -109,9 +113,26 @@ class Progress:
             sys.stderr.flush()
 
 
+SCORERS = "seamap.scorers"
+"""The entry-point group of what scores a result against a reference: ``truth`` takes
+``--truth`` (installed with the simulator's tools)."""
+
+
+def truth_scorer(path: Path) -> Scorer:
+    """The installed ``truth`` scorer bound to ``path``; SeamapError when the file is
+    missing or no scorer is installed."""
+    if not path.is_file():
+        raise SeamapError(f"--truth {path}: no such file")
+    found = [e for e in entry_points(group=SCORERS) if e.name == "truth"]
+    if not found:
+        raise SeamapError(f"--truth {path}: no truth scorer is installed (the seamap tools)")
+    scorer: Scorer = found[0].load()(path)
+    return scorer
+
+
 def run(args: argparse.Namespace) -> int:
-    from seamap.config import load_config
-    from seamap.replay import replay, replay_survey
+    from daemon.config import load_config
+    from daemon.replay import replay, replay_survey
 
     if args.survey is not None and (args.sonar or args.nav):
         raise SeamapError("--survey replays every segment of the folder: not with --sonar/--nav")
@@ -124,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
                     raise SeamapError(f"{path}: no such {label}")
                 if path.is_dir():
                     raise SeamapError(f"{path}: is a directory, not a {label}")
+    scorer = truth_scorer(args.truth) if args.truth is not None else None
     progress = Progress()
     try:
         if args.survey is not None:
@@ -132,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
                 load_config(args.config),
                 args.out,
                 mode=args.mode,
-                truth=args.truth,
+                scorer=scorer,
                 progress=progress,
                 area=args.area,
             )
@@ -143,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
                 args.config,
                 args.mode,
                 args.out,
-                truth=args.truth,
+                scorer=scorer,
                 progress=progress,
                 area=args.area,
             )

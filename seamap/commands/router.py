@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 
 def register(subparsers: Any) -> None:
@@ -40,7 +40,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seamap.config import load_config
+    from daemon.config import load_config
     from seamap.router import router_settings, serve
 
     if args.duration is not None and not args.duration > 0:

@@ -23,9 +23,9 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from daemon.config import load_config
     from daemon.logs import configure_logging
     from daemon.service import Daemon
-    from seamap.config import load_config
 
     config = load_config(args.config)
     configure_logging(config.daemon.log_level)

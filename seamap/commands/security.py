@@ -60,7 +60,7 @@ def register(subparsers: Any) -> None:
 
 
 def run_init(args: argparse.Namespace) -> int:
-    from seamap.errors import SeamapError
+    from drivers.errors import SeamapError
     from seamap.security import init_security
 
     if args.router:

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 
 def register(subparsers: Any) -> None:
@@ -68,7 +68,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seamap.config import load_config
+    from daemon.config import load_config
     from seamap.shore import serve, shore_settings
 
     web = None

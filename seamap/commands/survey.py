@@ -1,8 +1,8 @@
 """``seamap survey plan|replan|start|status|pause|resume|abort``: survey missions on the
 autopilot.
 
-``plan`` turns an area into a QGroundControl ``.plan`` (``seamap.plan_files``), ``replan``
-what a survey missed of it (``seamap.replan_files``); the others talk to the autopilot
+``plan`` turns an area into a QGroundControl ``.plan`` (``daemon.plan_files``), ``replan``
+what a survey missed of it (``daemon.replan_files``); the others talk to the autopilot
 through MAVSDK (``drivers.mission``). ``start`` then asks the boat daemon over zenoh to
 open a survey. Exit status: 0 done (for ``replan`` also when there is nothing to
 re-plan: it says so and writes nothing); 2 refused (one line on stderr, nothing started
@@ -20,7 +20,7 @@ from collections.abc import Sized
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 TIMEOUT_HELP = "the longest one step may take, in seconds (default %(default)s)"
 
@@ -187,7 +187,7 @@ def _check_timeout(args: argparse.Namespace) -> None:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from seamap.config import load_config
+    from daemon.config import load_config
 
     config = load_config(args.config)
     options: dict[str, Any] = {
@@ -200,7 +200,7 @@ def run_plan(args: argparse.Namespace) -> int:
     }
     if args.overlap is not None:
         options["overlap"] = args.overlap
-    planner: Any = importlib.import_module("seamap.plan_files")
+    planner: Any = importlib.import_module("daemon.plan_files")
     summary: dict[str, Any] = planner.plan_survey(args.area, args.out, config, **options)
     print(format_plan_summary(args.out, summary))
     return 0
@@ -241,7 +241,7 @@ def _covered(summary: dict[str, Any]) -> str:
 
 
 def run_replan(args: argparse.Namespace) -> int:
-    from seamap.config import load_config
+    from daemon.config import load_config
 
     options: dict[str, Any] = {
         "survey": args.survey,
@@ -254,7 +254,7 @@ def run_replan(args: argparse.Namespace) -> int:
         "start": None if args.start is None else _latlon("--from", args.start),
     }
     config = load_config(args.config)
-    planner: Any = importlib.import_module("seamap.replan_files")
+    planner: Any = importlib.import_module("daemon.replan_files")
     summary: dict[str, Any] = planner.replan_survey(args.area, args.out, config, **options)
     print(format_replan_summary(args.out, summary))
     return 0
@@ -318,16 +318,17 @@ def format_replan_summary(out: Path, summary: dict[str, Any]) -> str:
 def run_start(args: argparse.Namespace) -> int:
     import asyncio
 
+    from daemon import request
+    from daemon.config import load_config
     from drivers import mission
-    from seamap.config import load_config
-    from seamap.plan_area import parse_area
+    from drivers.formats.area import parse_area
 
     _check_timeout(args)
     # Everything that can be wrong with the command line is found before the boat moves.
     plan = mission.load_plan(args.plan)
     url = mission.mavsdk_url(args.connect)
     config = load_config(args.config) if args.config is not None else None
-    target = mission.daemon_target(config, args.daemon, args.vehicle)
+    target = request.daemon_target(config, args.daemon, args.vehicle)
     firmware = mission.Firmware(args.firmware) if args.firmware else None
     if plan.area is not None:  # checked before the boat moves: the daemon would refuse it
         parse_area(json.dumps(plan.area), f"{args.plan}: the plan's seamap.area")
@@ -346,7 +347,7 @@ def run_start(args: argparse.Namespace) -> int:
             "open one with `seamap ctl start`"
         )
         return 0
-    answer = mission.request_survey_start(target, timeout_s=min(args.timeout, 10.0), area=plan.area)
+    answer = request.request_survey_start(target, timeout_s=min(args.timeout, 10.0), area=plan.area)
     if answer.survey is not None:
         covering = " (covering the plan's area)" if plan.area is not None else ""
         print(f"survey {answer.survey} recording on {target.vehicle}{covering}")

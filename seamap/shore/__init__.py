@@ -7,7 +7,7 @@
 - ``seamap.shore.web``: the live map page (``--web``), served from its own thread and
   ``static/`` (plain JavaScript).
 
-The zenoh contract itself (keys, payloads) is shared with the boat in ``seamap.zenoh_io``.
+The zenoh contract itself (keys, payloads) is shared with the boat in ``drivers.zenoh_io``.
 """
 
 from seamap.shore.station import ShoreSettings, ShoreStation, serve, shore_settings

@@ -36,28 +36,20 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
-from mapping.mosaic import TileGrid, assemble
-from seamap.results import write_geotiff, write_png
-from seamap.zenoh_io import (
+from drivers.formats.results import write_geotiff, write_png
+from drivers.zenoh_io import (
     CoverageInfo,
     CoverageKeyParts,
     TileInfo,
     TileKeyParts,
     decode_tile,
+    id_problem,
     json_bytes,
     parse_coverage_summary,
 )
+from mapping.mosaic import TileGrid, assemble
 
 TRACK_HEADER = ("time", "lat", "lon", "east", "north", "heading_deg")
-
-
-def id_problem(value: str) -> str | None:
-    """Why ``value`` cannot be a vehicle or survey id (a key chunk and a folder name)."""
-    if not value or value in (".", ".."):
-        return "not an id"
-    if any(c in value for c in "/*?#$") or any(c.isspace() for c in value):
-        return "an id holds no '/', '*', '?', '#', '$' or spaces"
-    return None
 
 
 class BadPayload(Exception):
@@ -444,10 +436,33 @@ __all__ = [
     "ShoreState",
     "TrackPoint",
     "atomic_write",
-    "id_problem",
     "write_coverage_raster",
     "write_coverage_summary",
     "write_mosaic",
     "write_status",
     "write_track",
 ]
+
+
+@dataclass(frozen=True, slots=True)
+class ShoreEvent:
+    """One item the station applied, for its ``on_event`` listener.
+
+    ``kind`` is "tile" (``survey``, ``col``, ``row``, ``info`` and the PNG as received in
+    ``payload``), "pose" (``point``, and the pose JSON as received in ``payload``), "status"
+    (``status``), "alive" (``alive``: the liveliness token appeared or went), "coverage"
+    (``survey`` and its newer ``summary``) or "coverage_raster" (``survey``,
+    ``coverage_info`` and the PNG as received in ``payload``)."""
+
+    kind: str
+    vehicle: str
+    survey: str = ""
+    col: int = 0
+    row: int = 0
+    info: TileInfo | None = None
+    payload: bytes = b""
+    point: TrackPoint | None = None
+    status: dict[str, Any] | None = None
+    alive: bool | None = None
+    summary: dict[str, Any] | None = None
+    coverage_info: CoverageInfo | None = None

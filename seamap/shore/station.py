@@ -40,31 +40,14 @@ from typing import Any, TextIO
 
 import zenoh
 
-from seamap.config import SiteConfig, ZenohConfig
-from seamap.errors import SeamapError
-from seamap.shore.state import (
-    BadPayload,
-    HeldCoverage,
-    HeldSurvey,
-    HeldTile,
-    HeldVehicle,
-    Mosaic,
-    ShoreState,
-    TrackPoint,
-    id_problem,
-    write_coverage_raster,
-    write_coverage_summary,
-    write_mosaic,
-    write_status,
-    write_track,
-)
-from seamap.zenoh_io import (
+from daemon.config import SiteConfig, ZenohConfig
+from drivers.errors import SeamapError
+from drivers.zenoh_io import (
     ROOT,
-    CoverageInfo,
     CoverageKeyParts,
-    TileInfo,
     alive_key,
     coverage_selector,
+    id_problem,
     open_session,
     parse_alive_key,
     parse_coverage_key,
@@ -73,6 +56,22 @@ from seamap.zenoh_io import (
     status_key,
     tiles_selector,
     with_endpoints,
+)
+from seamap.shore.state import (
+    BadPayload,
+    HeldCoverage,
+    HeldSurvey,
+    HeldTile,
+    HeldVehicle,
+    Mosaic,
+    ShoreEvent,
+    ShoreState,
+    TrackPoint,
+    write_coverage_raster,
+    write_coverage_summary,
+    write_mosaic,
+    write_status,
+    write_track,
 )
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -131,30 +130,6 @@ def shore_settings(
         if value != "*" and id_problem(value):
             raise SeamapError(f"{name} {value!r}: {id_problem(value)}")
     return ShoreSettings(out_dir=out_dir, zenoh=session, vehicle=vehicle, survey=survey)
-
-
-@dataclass(frozen=True, slots=True)
-class ShoreEvent:
-    """One item the station applied, for its ``on_event`` listener.
-
-    ``kind`` is "tile" (``survey``, ``col``, ``row``, ``info`` and the PNG as received in
-    ``payload``), "pose" (``point``, and the pose JSON as received in ``payload``), "status"
-    (``status``), "alive" (``alive``: the liveliness token appeared or went), "coverage"
-    (``survey`` and its newer ``summary``) or "coverage_raster" (``survey``,
-    ``coverage_info`` and the PNG as received in ``payload``)."""
-
-    kind: str
-    vehicle: str
-    survey: str = ""
-    col: int = 0
-    row: int = 0
-    info: TileInfo | None = None
-    payload: bytes = b""
-    point: TrackPoint | None = None
-    status: dict[str, Any] | None = None
-    alive: bool | None = None
-    summary: dict[str, Any] | None = None
-    coverage_info: CoverageInfo | None = None
 
 
 @dataclass

@@ -35,10 +35,9 @@ from typing import Any
 
 from aiohttp import web
 
-from seamap.errors import SeamapError
-from seamap.shore.state import id_problem
-from seamap.shore.station import ShoreEvent
-from seamap.zenoh_io import CoverageInfo, TileInfo
+from drivers.errors import SeamapError
+from drivers.zenoh_io import CoverageInfo, TileInfo, id_problem
+from seamap.shore.state import ShoreEvent
 
 STATIC_DIR = Path(__file__).with_name("static")
 CLIENT_QUEUE = 256

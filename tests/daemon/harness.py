@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from daemon.config import ZenohConfig, config_from_dict, dump_config
 from daemon.control import request
-from seamap.config import ZenohConfig, config_from_dict, dump_config
-from seamap.errors import SeamapError
-from seamap.zenoh_io import open_session
+from drivers.errors import SeamapError
+from drivers.zenoh_io import open_session
 from tests.ports import free_tcp_port, free_udp_port
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")

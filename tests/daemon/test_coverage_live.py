@@ -27,8 +27,8 @@ import shapely
 from PIL import Image
 
 from drivers.mission import load_plan
+from drivers.zenoh_io import CoverageInfo, parse_coverage_key, parse_coverage_summary
 from mapping.geo import LocalFrame
-from seamap.zenoh_io import CoverageInfo, parse_coverage_key, parse_coverage_summary
 from tests.daemon.harness import (
     DaemonProcess,
     Heard,

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from daemon.survey import RESERVE_BYTES, RESERVE_FILE, SurveyState, read_state, write_state
+from drivers.formats.tilespill import DiskSpill
 from mapping.tiles import MemorySpill, TileStore
-from seamap.tilespill import DiskSpill
 from tests.daemon.harness import DaemonProcess
 from tests.daemon.test_lifecycle import config_file, ctl, wait_for
 from tests.mapping.test_tiles import GRID, TILES, frame, pose

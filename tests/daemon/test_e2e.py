@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 import rasterio
 
+from daemon.replay import replay
 from drivers.mavlink.navlog import read_nav_log
 from drivers.oculus.logfile import iter_pings
-from seamap.replay import replay
-from seamap.zenoh_io import TileInfo, decode_tile, parse_tile_key
+from drivers.zenoh_io import TileInfo, decode_tile, parse_tile_key
 from tests.daemon.harness import (
     SEAMAP,
     DaemonProcess,

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
+from daemon.config import config_from_dict, dump_config
 from daemon.survey import SurveyState, write_state
 from drivers.oculus.logfile import OculusLogWriter
-from seamap.config import config_from_dict, dump_config
 from tests.daemon.harness import SEAMAP, DaemonProcess, free_udp_port, zenoh_table
 from tests.ports import free_tcp_port as closed_tcp_port
 from tools.sim import simulate

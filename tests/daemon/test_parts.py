@@ -18,12 +18,12 @@ import pytest
 from daemon.control import request, serve_control
 from daemon.logs import LineFormatter, configure_logging, format_fields
 from daemon.mapper import MappingWorker
+from daemon.replay import mount_from_config, pipeline_params
 from daemon.supervisor import Supervisor
 from daemon.survey import SurveyState, new_survey_id, read_state, unfinished, write_state
+from drivers.errors import SeamapError
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams
-from seamap.errors import SeamapError
-from seamap.replay import mount_from_config, pipeline_params
 from tools.sim.stream import survey_events
 
 

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import rasterio
 
+from daemon.config import ZenohConfig
 from daemon.publisher import TILES_DIR, ZenohPublisher, read_tiles
+from drivers.formats.results import write_geotiff
+from drivers.zenoh_io import decode_tile, open_session
 from mapping.mosaic import TileGrid, assemble
 from mapping.streaming import TileUpdate
-from seamap.config import ZenohConfig
-from seamap.results import write_geotiff
 from seamap.shore import ShoreSettings, ShoreStation
-from seamap.zenoh_io import decode_tile, open_session
 from tests.ports import free_tcp_port
 
 VEHICLE, SURVEY, EPSG = "boat1", "s1", 32631

@@ -10,7 +10,7 @@ import signal
 from collections.abc import Callable
 from pathlib import Path
 
-from seamap.config import config_from_dict, dump_config
+from daemon.config import config_from_dict, dump_config
 from tests.daemon.harness import DaemonProcess, free_udp_port, zenoh_table
 from tests.daemon.test_lifecycle import ctl
 from tests.drivers.test_oculus_link import source

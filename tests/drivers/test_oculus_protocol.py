@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from drivers.errors import SeamapError
 from drivers.oculus import (
     HEADER_SIZE,
     OCULUS_ID,
@@ -29,7 +30,6 @@ from drivers.oculus import (
     read_ping_info,
 )
 from mapping.samples import Ping
-from seamap.errors import SeamapError
 from tests.fuzzing import fuzz
 
 DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "oculus"

@@ -24,7 +24,10 @@ import cv2
 import numpy as np
 import pytest
 
-from mapping.baselines import (
+from mapping.fmt import FmtRegistrar, RelativePose, SonarGrid
+from tests.mapping import synth
+from tests.mapping import test_fmt_bed as bed
+from tools.evaluation.baselines import (
     REGISTRATION_BASELINES,
     BaselineResult,
     EccRegistrar,
@@ -34,9 +37,6 @@ from mapping.baselines import (
     relative_from_pixels,
     rigid_fit,
 )
-from mapping.fmt import FmtRegistrar, RelativePose, SonarGrid
-from tests.mapping import synth
-from tests.mapping import test_fmt_bed as bed
 
 METHODS = sorted(REGISTRATION_BASELINES)
 

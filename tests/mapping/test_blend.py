@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapping.blend import BlendParams, FeatureScorer, robust_blend
-from mapping.metrics import tenengrad
+from tools.evaluation.metrics import tenengrad
 
 
 def test_a_sharp_edge_stays_sharper_than_with_averaging() -> None:

@@ -23,12 +23,12 @@ from mapping.blend import (
     weighted_mean_blend,
 )
 from mapping.fmt import SonarGrid, hamming_taper
-from mapping.metrics import image_metrics
 from mapping.mosaic import SonarPose, TileGrid, assemble
 from mapping.polar import FanGeometry, polar_to_ground
 from mapping.preprocess import Preprocessor
 from mapping.tiles import MemorySpill, TileStore
 from tests.mapping import synth
+from tools.evaluation.metrics import image_metrics
 
 # The Oculus-like fan of the preprocessing tests: 128 beams over 120 degrees, 5 m.
 FAN = FanGeometry.of(np.radians(np.linspace(-60, 60, 128)), 400, 0.0125, 1.0, math.radians(15))

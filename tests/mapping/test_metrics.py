@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mapping.metrics import (
+from tools.evaluation.metrics import (
     Quadrat,
     array_offsets,
     displacement_field,

@@ -14,18 +14,18 @@ import math
 import numpy as np
 import pytest
 
-from mapping.ekf import EkfParams, ImuInput, NavFilter
-from mapping.fmt import RelativePose
-from mapping.frames import LocalRegistration, RegistrationParams, SonarMount, _Kept
-from mapping.navigation import NavInputs, gyro_epochs
-from seamap.config import load_config
-from seamap.replay import (
+from daemon.config import load_config
+from daemon.replay import (
     mount_from_config,
     ping_source,
     pipeline_params,
     read_navigation,
     stream_survey,
 )
+from mapping.ekf import EkfParams, ImuInput, NavFilter
+from mapping.fmt import RelativePose
+from mapping.frames import LocalRegistration, RegistrationParams, SonarMount, _Kept
+from mapping.navigation import NavInputs, gyro_epochs
 from tools.navloss import cut_tlog, measure, window_start
 from tools.sim import simulate
 

@@ -188,8 +188,8 @@ def test_a_ping_of_water_alone_gives_no_soundings() -> None:
 
 
 def test_the_site_file_turns_it_off(tmp_path: Path) -> None:
-    from seamap.config import load_config
-    from seamap.replay import pipeline_params
+    from daemon.config import load_config
+    from daemon.replay import pipeline_params
 
     site = tmp_path / "site.toml"
     site.write_text("[sonar]\nseabed_from_pings = false\n")

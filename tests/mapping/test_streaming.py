@@ -17,6 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from daemon.config import SiteConfig, load_config
+from daemon.replay import mount_from_config, pipeline_params, read_navigation
 from drivers.oculus.logfile import iter_pings
 from mapping.frames import SonarMount
 from mapping.live_resolve import ResolveParams
@@ -25,8 +27,6 @@ from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
 from mapping.tiles import TileStore
-from seamap.config import SiteConfig, load_config
-from seamap.replay import mount_from_config, pipeline_params, read_navigation
 from tools.sim import simulate
 from tools.sim.stream import survey_events
 

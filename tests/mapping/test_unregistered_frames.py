@@ -14,13 +14,13 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from daemon.config import load_config
+from daemon.replay import pipeline_params, replay
 from mapping.frames import FrameOutcome, SonarMount, relative_pose
 from mapping.pipeline import CONFIDENCE_FLOOR, blend_confidence
 from mapping.posegraph import Edge
 from mapping.single_stage import _parents
 from mapping.survey_graph import GraphParams, chain_constraints
-from seamap.config import load_config
-from seamap.replay import pipeline_params, replay
 from tools.sim.survey import simulate
 
 Array = npt.NDArray[np.float64]

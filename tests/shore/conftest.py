@@ -21,10 +21,8 @@ import zenoh
 from PIL import Image
 from pyproj import Transformer
 
-from seamap.results import COVERAGE_COLOURS
-from seamap.shore.station import ShoreSettings, ShoreStation
-from seamap.shore.web import WebServer
-from seamap.zenoh_io import (
+from drivers.formats.results import COVERAGE_COLOURS
+from drivers.zenoh_io import (
     CoverageInfo,
     TileInfo,
     alive_key,
@@ -39,6 +37,8 @@ from seamap.zenoh_io import (
     tile_key,
     tiles_selector,
 )
+from seamap.shore.station import ShoreSettings, ShoreStation
+from seamap.shore.web import WebServer
 from tests.ports import free_tcp_port
 from tests.test_shore import (  # the same grid and tiles as the station's own tests
     EPSG,
@@ -81,7 +81,7 @@ COVERAGE_WEST, COVERAGE_NORTH = 500_000.0, 4_800_010.0
 """The raster's top-left corner (UTM 31N metres): north of the test tiles, not on them."""
 COVERAGE_COLS, COVERAGE_ROWS = 40, 24  # 10 m x 6 m
 RGB = {name: tuple(reversed(bgr)) for name, bgr in COVERAGE_COLOURS.items()}
-"""The raster's colours (``seamap.results`` keeps them as BGR for OpenCV)."""
+"""The raster's colours (``drivers.formats.results`` keeps them as BGR for OpenCV)."""
 
 
 def coverage_cells(order: tuple[str, str, str] = ("below_bar", "at_bar", "above_bar")):

@@ -12,9 +12,9 @@ from typing import Any
 
 import pytest
 
+from drivers.zenoh_io import CoverageKeyParts, json_bytes
 from seamap.shore import ShoreSettings, ShoreStation
 from seamap.shore.state import ShoreState
-from seamap.zenoh_io import CoverageKeyParts, json_bytes
 from tests.ports import free_tcp_port
 from tests.shore.conftest import (
     CoverageSource,

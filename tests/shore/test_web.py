@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from seamap.errors import SeamapError
-from seamap.shore.station import ShoreEvent
+from drivers.errors import SeamapError
+from seamap.shore.state import ShoreEvent
 from seamap.shore.web import WebView, parse_web_address
 from tests.ports import free_tcp_port
 from tests.shore.conftest import (

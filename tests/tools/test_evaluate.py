@@ -17,7 +17,7 @@ import pytest
 
 from mapping.geo import LocalFrame
 from mapping.pipeline import SurveyResult
-from tools.evaluate import evaluate, truth_heads, truth_index, truth_poses
+from tools.evaluation.truth import evaluate, truth_heads, truth_index, truth_poses
 from tools.footprint import Fan, Heads, fan_hits
 from tools.lanes import lane_disagreement, pass_disagreements
 from tools.se2 import placement_shift, relative_pose_error

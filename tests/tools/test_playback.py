@@ -23,7 +23,8 @@ from drivers.oculus.logfile import iter_pings
 from mapping.samples import Ping
 from tests.ports import free_udp_port
 from tools.emulators.autopilot import read_autopilot_messages
-from tools.emulators.playback import PlaybackClock, SurveyPlayback, main
+from tools.emulators.clock import PlaybackClock
+from tools.emulators.playback import SurveyPlayback, main
 from tools.sim import simulate
 
 DEADLINE_S = 40.0

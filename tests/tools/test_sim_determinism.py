@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 from tools.sim import SCENARIOS, parse_overrides, simulate
 
 FILES = (

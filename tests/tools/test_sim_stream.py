@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from daemon.config import load_config
+from drivers.errors import SeamapError
 from drivers.mavlink.navlog import read_nav_log
 from drivers.oculus.logfile import iter_pings
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping
-from seamap.config import load_config
-from seamap.errors import SeamapError
 from tools.sim import SCENARIOS, simulate
 from tools.sim.stream import SimStream, survey_events
 

@@ -14,7 +14,7 @@ import pytest
 import rasterio
 from pyproj import Proj, Transformer
 
-from seamap.config import load_config
+from daemon.config import load_config
 from tools.sim import simulate
 from tools.sim.truth import TRUTH_FORMAT, TRUTH_VERSION
 

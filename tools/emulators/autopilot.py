@@ -5,7 +5,7 @@
 with its own sequence numbers as system 1 / component 1, and sends its own HEARTBEAT
 (MAV_TYPE_SURFACE_BOAT, MAV_AUTOPILOT_ARDUPILOTMEGA) every ``heartbeat_period_s`` of wall
 time (the log's own heartbeats and the ground station's messages are not replayed). Given
-a ``tools.emulators.playback.PlaybackClock``, it sends each message at the clock's wall time
+a ``tools.emulators.clock.PlaybackClock``, it sends each message at the clock's wall time
 of its log stamp instead, in step with the other devices on that clock.
 
 It answers MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK (accepted, or unsupported when
@@ -47,7 +47,7 @@ from drivers.mavlink.framing import open_log, scan_tlog
 from drivers.mavlink.navlog import NavReadReport
 
 if TYPE_CHECKING:
-    from tools.emulators.playback import PlaybackClock
+    from tools.emulators.clock import PlaybackClock
 
 __all__ = ["AutopilotEmulator", "ClientLog", "read_autopilot_messages"]
 

@@ -7,7 +7,7 @@ honours the fire's 8/16-bit data size, send-gain flag and gain/gamma (echoed bac
 range demand is informational (the source's images are sent as they are). The ping source
 is shared across connections, so pings resume where they stopped after a reconnect.
 
-Given a ``tools.emulators.playback.PlaybackClock`` the emulator plays its source in the
+Given a ``tools.emulators.clock.PlaybackClock`` the emulator plays its source in the
 source's own time instead: each ping is sent at ``clock.wall(ping.time)`` (waiting for the
 clock to start), if a client is connected and a fire is live then; a ping whose time
 passes while the sonar is not fired (no client, or the fire lapsed) is skipped and counted
@@ -43,7 +43,7 @@ from drivers.oculus.protocol import (
 from mapping.samples import Ping
 
 if TYPE_CHECKING:
-    from tools.emulators.playback import PlaybackClock
+    from tools.emulators.clock import PlaybackClock
 
 log = logging.getLogger(__name__)
 

@@ -40,7 +40,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 from tools.sim.swath import lane_spacing_for, range_resolution_for
 
 # 2024-06-12T14:00:00Z: a fixed scenario start so that files never depend on the wall clock.

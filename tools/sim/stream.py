@@ -43,10 +43,10 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import all as mavlink_all
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from daemon.config import SiteConfig
 from drivers.mavlink import convert
 from drivers.oculus.ping import parse_simple_ping
 from mapping.samples import Ping
-from seamap.config import SiteConfig
 from tools.sim import writer
 from tools.sim.pings import PingSource, mean_altitude
 from tools.sim.scenarios import Scenario, resolve_scenario

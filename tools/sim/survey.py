@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from drivers.errors import SeamapError
 from drivers.oculus.logfile import OculusLogWriter
-from seamap.errors import SeamapError
 from tools.sim import writer
 from tools.sim.echosounder import simulate_echosounder
 from tools.sim.fieldday import draw_field_day

@@ -30,7 +30,7 @@ import numpy.typing as npt
 import rasterio
 from affine import Affine
 
-from seamap.config import (
+from daemon.config import (
     EchosounderConfig,
     MavlinkConfig,
     SiteConfig,

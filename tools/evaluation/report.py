@@ -13,9 +13,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from seamap.evaluation import paper
-from seamap.evaluation.blending import BLENDING_NAMES
-from seamap.evaluation.registration import BASELINE_NAMES
+from tools.evaluation import paper
+from tools.evaluation.blending import BLENDING_NAMES
+from tools.evaluation.registration import BASELINE_NAMES
 
 METRIC_KEYS = ("entropy", "variance", "rms_contrast", "tenengrad", "variance_of_laplacian")
 MODE_NAMES = {

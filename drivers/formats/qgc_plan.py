@@ -17,7 +17,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 GLOBAL_FRAMES = frozenset({0, 3, 5, 6, 10, 11})
 """Frames whose x/y are latitude/longitude (degE7 in MISSION_ITEM_INT)."""

@@ -5,7 +5,7 @@ each blending (``mapping.blend``: plain averaging, Hurtós et al.'s distance wei
 et al.'s variance scores over fixed windows with a plain mean, and the paper's robust
 variance blending), the frames preprocessed and projected at their roll and pitch exactly
 as the survey-end pass does; per method the image metrics of the mosaic
-(``mapping.metrics.image_metrics``, intensities in [0, 1] over the pixels with data) and
+(``tools.evaluation.metrics.image_metrics``, intensities in [0, 1] over the pixels with data) and
 the mosaic itself (for Fig. 5).
 """
 
@@ -23,12 +23,12 @@ import numpy.typing as npt
 
 from mapping.frames import SonarMount
 from mapping.geo import LocalFrame
-from mapping.metrics import image_metrics
 from mapping.mosaic import assemble
 from mapping.navigation import AttitudeTrack
 from mapping.pipeline import NavSamples, PipelineParams, blend_frames
 from mapping.samples import Ping
-from seamap.evaluation.registration import Trajectory
+from tools.evaluation.metrics import image_metrics
+from tools.evaluation.registration import Trajectory
 
 BLENDINGS = ("average", "hurtos", "su", "robust")
 """Table V's rows, in the paper's order."""

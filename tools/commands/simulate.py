@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 
 def register(subparsers: Any) -> None:

@@ -26,15 +26,15 @@ from typing import Any
 
 import numpy as np
 
-from mapping.baselines import REGISTRATION_BASELINES
+from daemon.config import SiteConfig, load_config
+from daemon.replay import mount_from_config, ping_source, pipeline_params, read_navigation
+from drivers.errors import SeamapError
 from mapping.frames import LocalRegistration
-from mapping.metrics import Quadrat
-from seamap.config import SiteConfig, load_config
-from seamap.errors import SeamapError
-from seamap.evaluation import blending, figures, modes, registration
-from seamap.evaluation.preprocessing import CONFIGURATIONS, preprocessing_table
-from seamap.evaluation.report import write_report
-from seamap.replay import mount_from_config, ping_source, pipeline_params, read_navigation
+from tools.evaluation import blending, figures, modes, registration
+from tools.evaluation.baselines import REGISTRATION_BASELINES
+from tools.evaluation.metrics import Quadrat
+from tools.evaluation.preprocessing import CONFIGURATIONS, preprocessing_table
+from tools.evaluation.report import write_report
 
 Say = Callable[[str], None]
 
@@ -89,7 +89,7 @@ def resolve_inputs(
         if given is not None and not given.is_file():
             raise SeamapError(f"{given}: no such file")
     if truth is not None:
-        from tools.evaluate import load_truth
+        from tools.evaluation.truth import load_truth
 
         load_truth(truth)  # a file that is not a simulator's truth says so now
     config = load_config(config_path)
@@ -189,7 +189,7 @@ def _quadrats(inputs: Inputs, epsg: int) -> list[Quadrat] | None:
     if inputs.quadrats_path is not None:
         return modes.read_quadrats(inputs.quadrats_path, epsg)
     if inputs.truth is not None:
-        from tools.evaluate import load_truth, quadrats_of
+        from tools.evaluation.truth import load_truth, quadrats_of
 
         return quadrats_of(load_truth(inputs.truth)) or None
     return None
@@ -258,7 +258,13 @@ def _with_truth(
 ) -> dict[str, Any]:
     """Each method's ATE, RPE over 10 s and lane disagreement against the truth: the
     modes' from their reports, the baselines' from their chained steps."""
-    from tools.evaluate import load_truth, quadrats_of, trajectory_section, truth_heads, truth_poses
+    from tools.evaluation.truth import (
+        load_truth,
+        quadrats_of,
+        trajectory_section,
+        truth_heads,
+        truth_poses,
+    )
     from tools.footprint import Fan
     from tools.lanes import lane_disagreement
 

@@ -1,12 +1,12 @@
 """Re-planning a survey's gaps as files: its coverage raster and area in, a mission over
 what it missed out.
 
-``replan_survey`` reads ``coverage.tif`` (``seamap.results.read_coverage_tif``: band 3,
+``replan_survey`` reads ``coverage.tif`` (``drivers.formats.results.read_coverage_tif``: band 3,
 ``meets_bar``, says which cells were seen well enough) and the area
-(``seamap.plan_area.read_area``), finds the gaps (``planning.gaps``: the area, holes left
+(``drivers.formats.area.read_area``), finds the gaps (``planning.gaps``: the area, holes left
 out, less the cells meeting the bar, each part of at least ``min_gap_m2``), plans lanes
 over them (``planning.replan``) in the raster's UTM zone, and writes the four files
-``seamap survey plan`` writes (``seamap.plan_files.write_plan_files``), the gaps added to
+``seamap survey plan`` writes (``daemon.plan_files.write_plan_files``), the gaps added to
 the GeoJSON and the picture. The boat starts from ``start`` (lat, lon), else from the last
 row of the survey's ``trajectory.csv``, else from the area's first vertex.
 """
@@ -22,18 +22,9 @@ from typing import Any
 import numpy as np
 import shapely
 
-from mapping.geo import LocalFrame
-from planning.area import Area, PlanningError, validate_area
-from planning.coverage import swath_cover
-from planning.gaps import area_gaps, cells_geometry
-from planning.plan import SurveyPlan
-from planning.replan import plan_gaps
-from seamap.config import SiteConfig
-from seamap.coverage import COVERAGE_TIF
-from seamap.errors import SeamapError
-from seamap.plan_area import SurveyArea, area_in, located_message, read_area
-from seamap.plan_export import plan_geojson
-from seamap.plan_files import (
+from daemon.config import SiteConfig
+from daemon.coverage import COVERAGE_TIF
+from daemon.plan_files import (
     DEFAULT_OVERLAP,
     check_settings,
     configured_swath,
@@ -41,7 +32,16 @@ from seamap.plan_files import (
     mission_waypoints,
     write_plan_files,
 )
-from seamap.results import CoverageRaster, read_coverage_tif
+from drivers.errors import SeamapError
+from drivers.formats.area import SurveyArea, area_in, located_message, read_area
+from drivers.formats.plan_export import plan_geojson
+from drivers.formats.results import CoverageRaster, read_coverage_tif
+from mapping.geo import LocalFrame
+from planning.area import Area, PlanningError, validate_area
+from planning.gaps import area_gaps, cells_geometry
+from planning.plan import SurveyPlan
+from planning.replan import plan_gaps
+from planning.sweep import swath_cover
 
 COMMAND = "survey replan"
 TRAJECTORY_CSV = "trajectory.csv"

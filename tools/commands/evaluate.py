@@ -46,8 +46,8 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seamap.errors import SeamapError
-    from seamap.evaluation.run import evaluate_survey, resolve_inputs
+    from drivers.errors import SeamapError
+    from tools.evaluation.run import evaluate_survey, resolve_inputs
 
     if args.survey is not None and (args.sonar or args.nav):
         raise SeamapError("give a survey folder or --sonar and --nav, not both")

@@ -28,9 +28,9 @@ from rasterio.errors import RasterioError
 from rasterio.transform import from_origin
 from shapely.geometry.polygon import orient
 
+from drivers.errors import SeamapError
 from mapping.coverage import CoverageGrid
 from mapping.geo import LocalFrame
-from seamap.errors import SeamapError
 
 
 @contextmanager

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 
 def register(subparsers: Any) -> None:
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from seamap.bench import format_table, plot_memory, run_bench
+    from tools.bench import format_table, plot_memory, run_bench
 
     overrides: dict[str, Any] = {}
     if args.beams is not None:

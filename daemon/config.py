@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
+from drivers.mavlink.navlog import HEADING_SOURCES, IMU_SOURCES
+from drivers.zenoh_io import ZenohConfig, endpoint_problem, id_problem
 
 
 @dataclass(frozen=True)
@@ -91,10 +93,6 @@ class SonarConfig:
     for every ping, on a level bed."""
 
 
-HEADING_SOURCES = ("auto", "attitude", "global_position", "vfr_hud", "compass")
-IMU_SOURCES = ("auto", "highres", "scaled", "scaled2", "scaled3", "raw")
-
-
 @dataclass(frozen=True)
 class EchosounderConfig:
     """A downward echosounder on the autopilot (a Ping2-class altimeter reported as
@@ -127,26 +125,6 @@ class MavlinkConfig:
     the first of highres, scaled, raw, scaled2, scaled3 present."""
     declination_deg: float = 0.0
     """Magnetic declination east of true north (degrees), for heading_source = "compass"."""
-
-
-@dataclass(frozen=True)
-class ZenohConfig:
-    mode: str = "peer"
-    """zenoh session mode: "peer", "client" (through a router) or "router"."""
-    listen: list[str] = field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
-    """Endpoints the session listens on (zenoh locators, e.g. "tcp/0.0.0.0:7447")."""
-    connect: list[str] = field(default_factory=list)
-    """Endpoints the session connects to (a router, or a peer on shore)."""
-    multicast_scouting: bool = False
-    """Discover peers by UDP multicast (off: only listen/connect)."""
-    config_file: str = ""
-    """A zenoh JSON5 configuration file read first (TLS, user/password authentication,
-    access control); mode, listen, connect and multicast_scouting above override it."""
-    allow_insecure: bool = False
-    """Let the daemon listen in plain TCP (or UDP, WebSocket) on an address other hosts
-    reach: anyone who reaches the port can then stop surveys and publish as the boat.
-    Off: such a listen endpoint stops the daemon at start; make a secure set with
-    `seamap security init` instead. Loopback endpoints are always allowed."""
 
 
 @dataclass(frozen=True)
@@ -314,10 +292,10 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
 }
 
 
-def _vehicle_id(value: str) -> str | None:
-    if not value or "/" in value or any(c in value for c in "*$?#") or value != value.strip():
-        return "must be a non-empty id without '/', '*', '$', '?', '#' or surrounding spaces"
-    return None
+def _is_not(what: str, problem: str | None) -> str | None:
+    """A shared check's answer (``drivers.zenoh_io``: the ids and endpoints the shore,
+    the router and the security sets check the same way) as this file's reasons read."""
+    return None if problem is None else f"is not {what} ({problem})"
 
 
 def _not_empty(value: str) -> str | None:
@@ -334,24 +312,13 @@ def _sonar_address(value: str) -> str | None:
     return None
 
 
-def _locator(value: str) -> str | None:
-    protocol, slash, rest = value.partition("/")
-    host, colon, port = rest.rpartition(":")
-    if not slash or not protocol or not colon or not host:
-        return 'must be a zenoh locator such as "tcp/127.0.0.1:7447"'
-    port = port.split("#", 1)[0]
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
-        return f"has no port 0..65535 ({value!r})"
-    return None
-
-
 _TEXT: dict[tuple[str, str], Callable[[str], str | None]] = {
-    ("daemon", "vehicle"): _vehicle_id,
+    ("daemon", "vehicle"): lambda value: _is_not("a vehicle id", id_problem(value)),
     ("daemon", "state_dir"): _not_empty,
     ("sonar", "address"): _sonar_address,
     ("mavlink", "url"): _not_empty,
-    ("zenoh", "listen"): _locator,
-    ("zenoh", "connect"): _locator,
+    ("zenoh", "listen"): lambda value: _is_not("a zenoh endpoint", endpoint_problem(value)),
+    ("zenoh", "connect"): lambda value: _is_not("a zenoh endpoint", endpoint_problem(value)),
 }
 """Checks of text values (of each item, for lists): None, or why the value is wrong.
 ``("zenoh", "config_file")`` is free: empty means none, and the file is read when used."""

@@ -23,7 +23,7 @@ import rasterio
 from matplotlib.axes import Axes
 from matplotlib.patches import Polygon as PolygonPatch
 
-from mapping.metrics import Quadrat
+from tools.evaluation.metrics import Quadrat
 
 Panel = tuple[str, npt.NDArray[np.uint8], float, float, float]
 """(title, mosaic uint8 (0 = no data), west, north, pixel m)."""

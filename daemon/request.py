@@ -14,9 +14,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from daemon.config import SiteConfig, ZenohConfig
+from drivers.errors import SeamapError
 from drivers.mission.mavsdk_link import ATTEMPTS
-from seamap.config import SiteConfig, ZenohConfig
-from seamap.errors import SeamapError
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +44,7 @@ def daemon_target(
     endpoints and its listen endpoints reached on loopback: the daemon's own config on the
     boat works as is) and/or an explicit zenoh ``endpoint`` and ``vehicle``. None when
     neither config nor endpoint is given. SeamapError for a malformed endpoint or id."""
-    from seamap.shore.state import id_problem
-    from seamap.zenoh_io import endpoint_problem
+    from drivers.zenoh_io import endpoint_problem, id_problem
 
     if config is None and endpoint is None:
         if vehicle is not None:
@@ -87,7 +86,7 @@ def request_survey_start(
     given); its reply ``{"ok": true, "survey": ID}`` (the survey already
     open, if one is: asking again is harmless). Tried up to ATTEMPTS times while the daemon
     cannot be reached or nothing answers; blocks up to about ``timeout_s``; never raises."""
-    from seamap import zenoh_io
+    from drivers import zenoh_io
 
     deadline = time.monotonic() + timeout_s
     answer = DaemonAnswer(None, "not asked")
@@ -107,7 +106,7 @@ def _ask_daemon(
     target: DaemonTarget, deadline: float, area: dict[str, Any] | None = None
 ) -> tuple[DaemonAnswer, bool]:
     """One request; the answer (``problem`` None: nobody answered) and whether to retry."""
-    from seamap import zenoh_io
+    from drivers import zenoh_io
 
     try:
         session = zenoh_io.open_session(target.zenoh)

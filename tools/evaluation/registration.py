@@ -3,7 +3,7 @@
 Every method is asked the same question: where is each frame relative to the one before
 it? For the mapping modes (fmt-only, gps-only, single-stage, two-stage) the answer is
 their trajectory's step between consecutive mapped frames; for the registration baselines
-(ORB + RANSAC, SIFT + RANSAC, ECC maximisation: ``mapping.baselines``) and FMT itself it
+(ORB + RANSAC, SIFT + RANSAC, ECC maximisation: ``tools.evaluation.baselines``) and FMT itself it
 is the pairwise registration of the two frames, from identity, with no navigation prior
 and no validation (the paper's use of them). A step is the later vehicle pose in the
 earlier one's frame: forward and starboard metres, yaw radians (``mapping.frames``).
@@ -33,12 +33,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mapping.baselines import REGISTRATION_BASELINES
 from mapping.fmt import FmtParams, FmtRegistrar, RelativePose
 from mapping.frames import LocalRegistration, SonarMount, compose, relative_pose
 from mapping.geo import LocalFrame
 from mapping.preprocess import PreprocessParams
 from mapping.samples import Ping
+from tools.evaluation.baselines import REGISTRATION_BASELINES
 
 Array = npt.NDArray[np.float64]
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,9 @@ import numpy as np
 import numpy.typing as npt
 import rasterio
 
-from mapping.metrics import (
+from drivers.errors import SeamapError
+from mapping.pipeline import SurveyResult
+from tools.evaluation.metrics import (
     Found,
     Quadrat,
     absolute_trajectory_error,
@@ -34,8 +37,6 @@ from mapping.metrics import (
     quadrat_spacing_error,
     relative_pose_consistency,
 )
-from mapping.pipeline import SurveyResult
-from seamap.errors import SeamapError
 from tools.footprint import Fan, Heads, fan_hits
 from tools.lanes import lane_disagreement
 from tools.se2 import relative_pose_error
@@ -285,3 +286,19 @@ def evaluate(
         lap("mosaic_vs_seabed")
     report["timings_s"] = timings
     return report
+
+
+def truth_scorer(
+    truth_path: Path,
+) -> Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]:
+    """The scorer ``daemon.replay.replay`` takes (``Scorer``): ``evaluate`` against this
+    simulator truth file; the ``seamap.scorers`` entry point ``truth`` (``seamap replay
+    --truth``)."""
+
+    def score(
+        result: SurveyResult, mosaic: npt.NDArray[np.uint8], west: float, north: float,
+        res_m: float,
+    ) -> dict[str, Any]:  # fmt: skip
+        return evaluate(truth_path, result, mosaic, west, north, res_m)
+
+    return score

@@ -5,7 +5,7 @@ folder, and with a truth its accuracy in report.json). Quadrat spacing (the pape
 III: MAE and RMSE, metres, of the distances between located quadrats against their true
 distances, over the pairs within one array) comes from the truth's quadrats, or from a
 quadrats file of taped positions for a real survey (``read_quadrats``), located in each
-mode's mosaic the same way (``tools.evaluate.quadrat_section``).
+mode's mosaic the same way (``tools.evaluation.truth.quadrat_section``).
 
 Table IV replays single-stage with the paper's lambda from 1e2 to 1e6: seamap weighs each
 registration by its covariance, and lambda / 1e4 scales that information (1e4, the
@@ -30,11 +30,12 @@ from typing import Any
 import numpy as np
 import rasterio
 
+from daemon.config import SiteConfig
+from daemon.replay import pipeline_params, replay
+from drivers.errors import SeamapError
 from mapping.geo import LocalFrame
-from mapping.metrics import Quadrat
-from seamap.config import SiteConfig
-from seamap.errors import SeamapError
-from seamap.replay import pipeline_params, replay
+from tools.evaluation.metrics import Quadrat
+from tools.evaluation.truth import MIN_VIEWS, quadrat_section, truth_scorer
 
 MODES = ("fmt-only", "gps-only", "single-stage", "two-stage")
 LAMBDAS = (1e2, 1e3, 1e4, 1e5, 1e6)
@@ -70,8 +71,9 @@ def run_mode(
     params: Any = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> ModeRun:
+    scorer = truth_scorer(truth) if truth is not None else None
     report = replay(
-        sonar, nav, None, mode, out, config=config, truth=truth, params=params, progress=progress
+        sonar, nav, None, mode, out, config=config, scorer=scorer, params=params, progress=progress
     )
     return ModeRun(mode, out, report)
 
@@ -115,8 +117,6 @@ def quadrat_spacing(run: ModeRun, quadrats: list[Quadrat] | None) -> dict[str, A
     """The mode's quadrat spacing: located in its mosaic for taped quadrats, else its
     report's (truth); None when neither knows the quadrats."""
     if quadrats is not None:
-        from tools.evaluate import MIN_VIEWS, quadrat_section
-
         with rasterio.open(run.folder / "mosaic.tif") as dataset:
             mosaic = dataset.read(1)
             t = dataset.transform

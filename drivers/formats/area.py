@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from drivers.errors import SeamapError
 from mapping.geo import LocalFrame
 from planning.area import Area, PlanningError, Polygon, clean_ring, validate_area
-from seamap.errors import SeamapError
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -1,11 +1,11 @@
 """The result folder's coverage: how well each seabed cell was seen (coverage.tif,
 coverage.png) and, when the survey's area is known, what it missed (gaps.geojson), with
 what report.json says of them; and the daemon's live coverage (``LiveCoverage``) with its
-zenoh publications (``CoverageMessage``: ``seamap.zenoh_io``'s coverage keys).
+zenoh publications (``CoverageMessage``: ``drivers.zenoh_io``'s coverage keys).
 
 Glue between a mapped survey (``mapping.pipeline.SurveyResult``: vehicle poses in its
 local frame), the coverage core (``mapping.coverage``), the gaps of an area
-(``planning.gaps``) and the file writers (``seamap.results``). Degrees and the file
+(``planning.gaps``) and the file writers (``drivers.formats.results``). Degrees and the file
 names live here, at the edge; the core takes radians and metres.
 """
 
@@ -23,15 +23,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mapping.coverage import CoverageGrid, CoverageParams, SeabedCoverage, SonarFan, footprint
-from mapping.frames import SonarMount
-from mapping.geo import LocalFrame
-from mapping.pipeline import SurveyResult
-from planning.gaps import AreaCoverage, area_gaps, cells_geometry
-from seamap.config import CoverageConfig
-from seamap.errors import SeamapError
-from seamap.plan_area import SurveyArea, area_in
-from seamap.results import (
+from daemon.config import CoverageConfig
+from drivers.errors import SeamapError
+from drivers.formats.area import SurveyArea, area_in
+from drivers.formats.results import (
     coverage_image,
     gaps_geojson,
     png_bytes,
@@ -40,7 +35,12 @@ from seamap.results import (
     write_coverage_tif,
     write_gaps,
 )
-from seamap.zenoh_io import CoverageInfo
+from drivers.zenoh_io import CoverageInfo
+from mapping.coverage import CoverageGrid, CoverageParams, SeabedCoverage, SonarFan, footprint
+from mapping.frames import SonarMount
+from mapping.geo import LocalFrame
+from mapping.pipeline import SurveyResult
+from planning.gaps import AreaCoverage, area_gaps, cells_geometry
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def survey_coverage(result: SurveyResult, fan: SonarFan, params: CoverageParams)
 
 @dataclass(frozen=True)
 class AreaSource:
-    """A survey area as read (``seamap.plan_area.read_area``) and the file it came from."""
+    """A survey area as read (``drivers.formats.area.read_area``) and the file it came from."""
 
     path: Path
     area: SurveyArea
@@ -156,7 +156,7 @@ def write_coverage(
 
 @dataclass(frozen=True)
 class CoverageMessage:
-    """One coverage publication (``seamap.zenoh_io``'s coverage keys): the summary (JSON
+    """One coverage publication (``drivers.zenoh_io``'s coverage keys): the summary (JSON
     object, gaps included), the raster as PNG and its attachment."""
 
     summary: dict[str, Any]
@@ -217,7 +217,7 @@ def _summary(
     survey: str, final: bool, version: int, epsg: int, cell_m: float, min_passes: int,
     seen_m2: float, covered_m2: float, area: dict[str, Any] | None, gaps: dict[str, Any],
 ) -> dict[str, Any]:  # fmt: skip
-    """A coverage summary (``seamap.zenoh_io.parse_coverage_summary``'s keys)."""
+    """A coverage summary (``drivers.zenoh_io.parse_coverage_summary``'s keys)."""
     return {
         "survey": survey,
         "time": round(time.time(), 3),

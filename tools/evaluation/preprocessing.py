@@ -2,7 +2,7 @@
 
 Each of the paper's nine configurations (row equalisation, median or non-local-means
 denoising, CLAHE, Gaussian blur) preprocesses the same frames; per configuration the mean
-image metrics of the Cartesian frames (``mapping.metrics.image_metrics``: entropy,
+image metrics of the Cartesian frames (``tools.evaluation.metrics.image_metrics``: entropy,
 variance, RMS contrast, Tenengrad, variance of the Laplacian, on intensities in [0, 1]
 within the fan) and the similarity score, the mean FMT correlation peak of each sampled
 frame registered to the next one (the paper's SS). Frames: every ``every``-th ping and its
@@ -18,9 +18,9 @@ import numpy as np
 
 from mapping.fmt import FmtRegistrar, PreparedFrame
 from mapping.frames import LocalRegistration, SonarFrame, SonarMount
-from mapping.metrics import image_metrics
 from mapping.preprocess import PreprocessParams
 from mapping.samples import Ping
+from tools.evaluation.metrics import image_metrics
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,11 @@ Both the boat (``daemon.publisher``) and the shore (``seamap.shore``) speak thro
 from __future__ import annotations
 
 import io
+import ipaddress
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -38,8 +39,7 @@ import numpy.typing as npt
 import zenoh
 from PIL import Image
 
-from seamap.config import ZenohConfig
-from seamap.errors import SeamapError
+from drivers.errors import SeamapError
 
 ROOT = "seamap"
 
@@ -158,7 +158,7 @@ COVERAGE_SUMMARY_KEYS = (
     "survey", "time", "final", "version", "epsg", "cell_m", "min_passes", "seen_m2",
     "covered_m2", "area", "gaps",
 )  # fmt: skip
-"""What a coverage summary holds (``seamap.coverage``'s publications)."""
+"""What a coverage summary holds (``daemon.coverage``'s publications)."""
 
 
 def parse_coverage_summary(data: bytes, survey: str | None = None) -> dict[str, Any]:
@@ -288,6 +288,59 @@ def decode_tile(png: bytes) -> npt.NDArray[np.uint8]:
         raise ValueError(f"not a grey + alpha PNG tile (mode {image.mode})")
     data = np.asarray(image)
     return np.where(data[:, :, 1] > 0, data[:, :, 0], 0).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    mode: str = "peer"
+    """zenoh session mode: "peer", "client" (through a router) or "router"."""
+    listen: list[str] = field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
+    """Endpoints the session listens on (zenoh locators, e.g. "tcp/0.0.0.0:7447")."""
+    connect: list[str] = field(default_factory=list)
+    """Endpoints the session connects to (a router, or a peer on shore)."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast (off: only listen/connect)."""
+    config_file: str = ""
+    """A zenoh JSON5 configuration file read first (TLS, user/password authentication,
+    access control); mode, listen, connect and multicast_scouting above override it."""
+    allow_insecure: bool = False
+    """Let the daemon listen in plain TCP (or UDP, WebSocket) on an address other hosts
+    reach: anyone who reaches the port can then stop surveys and publish as the boat.
+    Off: such a listen endpoint stops the daemon at start; make a secure set with
+    `seamap security init` instead. Loopback endpoints are always allowed."""
+
+
+def id_problem(value: str) -> str | None:
+    """Why ``value`` cannot be a vehicle or survey id (a key chunk and a folder name)."""
+    if not value or value in (".", ".."):
+        return "not an id"
+    if any(c in value for c in "/*?#$") or any(c.isspace() for c in value):
+        return "an id holds no '/', '*', '?', '#', '$' or spaces"
+    return None
+
+
+_LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost"})
+
+
+def insecure_listen(endpoints: list[str]) -> list[str]:
+    """The endpoints that listen unencrypted on an address other hosts can reach (plain
+    TCP, UDP or WebSocket on anything but loopback)."""
+    found = []
+    for endpoint in endpoints:
+        locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+        protocol, _, address = locator.partition("/")
+        if protocol not in ("tcp", "udp", "ws"):
+            continue
+        host = address.rpartition(":")[0].strip("[]")
+        if host in _LOOPBACK_NAMES:
+            continue
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                continue
+        except ValueError:
+            pass  # a host name other than localhost: reachable from elsewhere
+        found.append(endpoint)
+    return found
 
 
 _HOST_PORT_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})

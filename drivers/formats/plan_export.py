@@ -10,10 +10,10 @@ pictures.
   line 0 home).
 - ``plan_geojson``: the area, keep-outs (role ``keepout_hull``, the name they kept from
   when they were convex hulls), legs (LineStrings) and waypoints (Points), WGS84 lon/lat,
-  for QGIS; for a re-plan (``seamap.replan_files``) the gaps too (role ``gap``).
+  for QGIS; for a re-plan (``daemon.replan_files``) the gaps too (role ``gap``).
 - ``write_png``: a picture of the plan over the area, with the swath (and the gaps).
 
-The MAVLink numbers the files carry are here too; ``seamap.plan_files`` reads them back.
+The MAVLink numbers the files carry are here too; ``daemon.plan_files`` reads them back.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ import numpy.typing as npt
 import shapely
 from shapely.geometry.polygon import orient
 
+from drivers.formats.area import SurveyArea
 from mapping.geo import LocalFrame
-from planning.coverage import MAPPING_LEGS
 from planning.plan import LegKind, SurveyPlan
 from planning.swath import Swath
-from seamap.plan_area import SurveyArea
+from planning.sweep import MAPPING_LEGS
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -3,7 +3,7 @@
 The glue between the drivers (log readers), the core (``mapping.pipeline``) and the result
 writers; the same core the daemon runs live. A survey recorded in several segments (one
 per daemon start: ``sonar-NNN.oculus``, ``nav-NNN.tlog``) is replayed as one survey. The
-survey's coverage goes with the mosaic (``seamap.coverage``), and its gaps when its area
+survey's coverage goes with the mosaic (``daemon.coverage``), and its gaps when its area
 is given.
 """
 
@@ -20,8 +20,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
+from daemon.config import EchosounderConfig, MappingConfig, SiteConfig, SonarConfig, load_config
+from daemon.coverage import AreaSource, write_coverage
+from daemon.memory import return_large_blocks
 from daemon.recording import segments
+from drivers.errors import SeamapError
+from drivers.formats.area import read_area
+from drivers.formats.results import write_geotiff, write_png, write_report, write_trajectory
+from drivers.formats.tilespill import DiskSpill
 from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
 from mapping.bottom import BottomParams
 from mapping.coverage import SonarFan
@@ -33,13 +41,6 @@ from mapping.samples import Ping
 from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
 from mapping.tiles import TileSpill
-from seamap.config import EchosounderConfig, MappingConfig, SiteConfig, SonarConfig, load_config
-from seamap.coverage import AreaSource, write_coverage
-from seamap.errors import SeamapError
-from seamap.memory import return_large_blocks
-from seamap.plan_area import read_area
-from seamap.results import write_geotiff, write_png, write_report, write_trajectory
-from seamap.tilespill import DiskSpill
 
 LogPaths = Path | Sequence[Path]
 """One log file, or the segments of one log in time order."""
@@ -244,6 +245,13 @@ def stream_survey(
     return final, (live, engine.stats)
 
 
+Scorer = Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]
+"""What scores a result against a reference (``report.json``'s ``accuracy``): called with
+the result, its north-up mosaic, the mosaic's west and north edges (UTM m) and its pixel
+(m). ``seamap replay --truth`` takes one from the ``seamap.scorers`` entry point ``truth``
+(the simulator's truth: ``tools.evaluation.truth.truth_scorer``); the product holds none."""
+
+
 def replay(
     sonar: LogPaths,
     nav: LogPaths,
@@ -252,7 +260,7 @@ def replay(
     out: Path,
     *,
     config: SiteConfig | None = None,
-    truth: Path | None = None,
+    scorer: Scorer | None = None,
     params: PipelineParams | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     area: Path | None = None,
@@ -262,7 +270,7 @@ def replay(
     ``sonar`` and ``nav`` are each one log or the segments of one survey in time order
     (Oculus logs; .tlog segments, or one .tlog or DataFlash .bin). ``config``, when given,
     is used instead of loading ``config_path`` (which may then be None). ``area``: the
-    survey's area (GeoJSON or a lat,lon list, ``seamap.plan_area``), read before any
+    survey's area (GeoJSON or a lat,lon list, ``drivers.formats.area``), read before any
     mapping: its covered fraction and gaps go into the result folder. Bad input ends in
     one SeamapError naming the files.
     """
@@ -384,14 +392,12 @@ def replay(
                 for k, v in stats.stage_s.items()
             },
         }
-    if truth is not None:
-        from tools.evaluate import evaluate
-
-        report["accuracy"] = evaluate(truth, result, image, west, north, params.mosaic_res_m)
+    if scorer is not None:
+        report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m)
         if live is not None:
             live_image, live_west, live_north = render(live[0])
-            report["accuracy_live"] = evaluate(
-                truth, live[0], live_image, live_west, live_north, params.mosaic_res_m
+            report["accuracy_live"] = scorer(
+                live[0], live_image, live_west, live_north, params.mosaic_res_m
             )
     write_report(out / "report.json", report)
     spill_dir.cleanup()
@@ -404,7 +410,7 @@ def replay_survey(
     out: Path,
     *,
     mode: str = "single-stage",
-    truth: Path | None = None,
+    scorer: Scorer | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     area: Path | None = None,
 ) -> dict[str, Any]:
@@ -429,7 +435,7 @@ def replay_survey(
     if not sonar:
         raise SeamapError(f"{survey_dir}: no sonar message was recorded (sonar segments empty)")
     return replay(
-        sonar, nav, None, mode, out, config=config, truth=truth, progress=progress, area=area
+        sonar, nav, None, mode, out, config=config, scorer=scorer, progress=progress, area=area
     )
 
 

@@ -1,15 +1,15 @@
 """Survey plans as files: the area in, the mission out, and a mission read back.
 
-``plan_survey`` reads the area (``seamap.plan_area``: GeoJSON or a lat,lon list), plans the
+``plan_survey`` reads the area (``drivers.formats.area``: GeoJSON or a lat,lon list), plans the
 lawnmower (``planning.lawnmower``) in the survey's UTM frame (``mapping.geo.LocalFrame``) and
-writes four files next to ``out`` (``seamap.plan_export``):
+writes four files next to ``out`` (``drivers.formats.plan_export``):
 
 - ``PLAN.plan``: a QGroundControl plan, which QGroundControl opens and MAVSDK imports;
 - ``PLAN.waypoints``: the same mission for Mission Planner (``QGC WPL 110``);
 - ``PLAN.geojson``: the area, keep-outs, legs and waypoints (WGS84 lon/lat), for QGIS;
 - ``PLAN.png``: a picture of the plan over the area, with the swath.
 
-``write_plan_files`` writes them for any planned path (``seamap.replan_files`` writes a
+``write_plan_files`` writes them for any planned path (``daemon.replan_files`` writes a
 re-plan of a survey's gaps through it); ``read_plan`` reads the waypoints, speed, home and
 firmware back from a ``.plan``.
 """
@@ -27,15 +27,10 @@ from typing import Any
 import numpy as np
 import shapely
 
-from planning.area import PlanningError
-from planning.coverage import coverage
-from planning.lawnmower import plan_survey as plan_lawnmower
-from planning.plan import SurveyPlan
-from planning.swath import Swath, sonar_swath
-from seamap.config import SiteConfig
-from seamap.errors import SeamapError
-from seamap.plan_area import SurveyArea, area_geojson, located_message, read_area
-from seamap.plan_export import (
+from daemon.config import SiteConfig
+from drivers.errors import SeamapError
+from drivers.formats.area import SurveyArea, area_geojson, located_message, read_area
+from drivers.formats.plan_export import (
     FIRMWARE_TYPES,
     MAV_CMD_DO_CHANGE_SPEED,
     MAV_CMD_NAV_WAYPOINT,
@@ -45,6 +40,11 @@ from seamap.plan_export import (
     qgc_plan,
     write_png,
 )
+from planning.area import PlanningError
+from planning.lawnmower import plan_survey as plan_lawnmower
+from planning.plan import SurveyPlan
+from planning.swath import Swath, sonar_swath
+from planning.sweep import coverage
 
 FAN_DEG = {"low": 130.0, "high": 60.0}
 """Horizontal aperture of the M1200d's fan per operating frequency (degrees)."""

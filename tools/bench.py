@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
+from daemon.memory import return_large_blocks
+from drivers.errors import SeamapError
+from drivers.formats.tilespill import DiskSpill
 from drivers.oculus.logfile import iter_pings
 from mapping import kernels
 from mapping.samples import Ping
 from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
-from seamap.errors import SeamapError
-from seamap.memory import return_large_blocks
-from seamap.tilespill import DiskSpill
 
 _BATCH = 64
 """Events a message from the simulator's process carries."""
@@ -254,7 +254,7 @@ def run_bench(
     final_pass: bool = False,
     progress: Any = None,
 ) -> BenchResult:
-    from seamap.replay import mount_from_config, pipeline_params
+    from daemon.replay import mount_from_config, pipeline_params
 
     if max_pings is not None:
         overrides = {**overrides, "max_pings": max_pings}
