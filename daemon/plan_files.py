@@ -16,7 +16,6 @@ firmware back from a ``.plan``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -31,7 +30,6 @@ from daemon.config import SiteConfig
 from drivers.errors import SeamapError
 from drivers.formats.area import SurveyArea, area_geojson, located_message, read_area
 from drivers.formats.plan_export import (
-    FIRMWARE_TYPES,
     MAV_CMD_DO_CHANGE_SPEED,
     MAV_CMD_NAV_WAYPOINT,
     mission_planner_waypoints,
@@ -40,6 +38,7 @@ from drivers.formats.plan_export import (
     qgc_plan,
     write_png,
 )
+from drivers.formats.qgc_plan import FIRMWARE_TYPES, load_plan
 from planning.area import PlanningError
 from planning.lawnmower import plan_survey as plan_lawnmower
 from planning.plan import SurveyPlan
@@ -309,43 +308,17 @@ def _write_text(path: Path, text: str) -> None:
 
 
 def read_plan(path: Path) -> PlanMission:
-    """The waypoints, speed, home and firmware of a QGroundControl .plan (SimpleItems
-    only); SeamapError (one line) if it is not one."""
-    path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SeamapError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SeamapError(f"{path}: cannot read the plan ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise SeamapError(f"{path}: not a QGroundControl plan (invalid JSON: {exc})") from None
-    if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
-        raise SeamapError(f'{path}: not a QGroundControl plan (no "fileType": "Plan")')
-    mission = doc.get("mission")
-    if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
-        raise SeamapError(f"{path}: the plan has no mission items")
+    """The waypoints, speed, home and firmware of a QGroundControl .plan, read by the one
+    .plan reader (``drivers.formats.qgc_plan.load_plan``); SeamapError (one line) if it is
+    not one."""
+    plan = load_plan(path)
     waypoints: list[tuple[float, float, float]] = []
     speed: float | None = None
-    for k, item in enumerate(mission["items"]):
-        if not isinstance(item, dict) or item.get("type") != "SimpleItem":
-            kind = item.get("type") if isinstance(item, dict) else type(item).__name__
-            raise SeamapError(f"{path}: mission item {k + 1} is a {kind}, not a SimpleItem")
-        params = item.get("params")
-        if not isinstance(params, list) or len(params) != 7:
-            raise SeamapError(f"{path}: mission item {k + 1} does not have 7 params")
-        try:
-            if item.get("command") == MAV_CMD_NAV_WAYPOINT:
-                waypoints.append((float(params[4]), float(params[5]), float(params[6] or 0.0)))
-            elif item.get("command") == MAV_CMD_DO_CHANGE_SPEED and speed is None:
-                speed = float(params[1])
-        except (TypeError, ValueError):
-            raise SeamapError(f"{path}: mission item {k + 1} has a bad position") from None
-    home_raw = mission.get("plannedHomePosition")
-    home = None
-    if isinstance(home_raw, list) and len(home_raw) == 3:
-        home = (float(home_raw[0]), float(home_raw[1]), float(home_raw[2] or 0.0))
-    names = {v: k for k, v in FIRMWARE_TYPES.items()}
-    firmware_type = mission.get("firmwareType")
-    firmware = names.get(firmware_type, "other") if isinstance(firmware_type, int) else "other"
-    return PlanMission(waypoints, speed, home, firmware)
+    for item in plan.items:
+        if item.command == MAV_CMD_NAV_WAYPOINT:
+            lat, lon, alt = item.params[4:7]
+            waypoints.append((lat, lon, alt if math.isfinite(alt) else 0.0))
+        elif item.command == MAV_CMD_DO_CHANGE_SPEED and speed is None:
+            speed = item.params[1]
+    firmware = plan.firmware.value if plan.firmware is not None else "other"
+    return PlanMission(waypoints, speed, plan.home, firmware)

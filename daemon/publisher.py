@@ -47,7 +47,7 @@ import numpy.typing as npt
 import rasterio
 import zenoh
 
-from daemon.coverage import CoverageMessage, final_message
+from daemon.live_coverage import CoverageMessage, final_message
 from drivers import zenoh_io
 from drivers.zenoh_io import TileInfo
 from mapping.streaming import PoseUpdate, TileUpdate

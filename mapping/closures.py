@@ -35,9 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import RelativePose
-from mapping.frames import compose, relative_pose
 from mapping.fusion import Fusion, RelativeConstraint, relative_chi2, sqrt_information
+from mapping.se2 import RelativePose, compose, relative_pose, wrap_pi
 
 Array = npt.NDArray[np.float64]
 
@@ -145,7 +144,7 @@ def _pass_groups(candidates: Sequence[ClosureCandidate], gap_s: float) -> list[l
 
 def _look_covariance(poses: Array, c: ClosureCandidate, params: ClosureParams) -> Array:
     """Extra covariance (vehicle frame of i) of a closure between opposite headings."""
-    dpsi = abs(float((poses[c.j, 2] - poses[c.i, 2] + math.pi) % (2 * math.pi) - math.pi))
+    dpsi = abs(float(wrap_pi(poses[c.j, 2] - poses[c.i, 2])))
     if dpsi <= math.pi / 2:
         return np.zeros((3, 3))
     forward, starboard = params.opposite_look_sigma_m
@@ -157,7 +156,7 @@ def _correction(poses: Array, c: ClosureCandidate, h: ClosureHypothesis) -> Arra
     metres, yaw radians)."""
     implied = compose(poses[c.i], h.relative)
     d = implied - poses[c.j]
-    d[2] = (d[2] + math.pi) % (2 * math.pi) - math.pi
+    d[2] = wrap_pi(d[2])
     return d
 
 
@@ -209,7 +208,7 @@ def select_closures(
                 [
                     hyp.relative.forward_m - rel.forward_m,
                     hyp.relative.starboard_m - rel.starboard_m,
-                    (hyp.relative.yaw_rad - rel.yaw_rad + math.pi) % (2 * math.pi) - math.pi,
+                    wrap_pi(hyp.relative.yaw_rad - rel.yaw_rad),
                 ]
             )
             total = sigma_pred + hyp.covariance + look

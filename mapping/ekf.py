@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from filterpy.kalman import ExtendedKalmanFilter
 
-from mapping.geo import wrap_pi
+from mapping.se2 import wrap_pi
 
 GRAVITY = 9.80665
 STATE_SIZE = 8
@@ -214,7 +214,7 @@ class NavFilter:
         before = self.ekf.x[[PX, PY, PSI], 0].copy()
         self.ekf.predict()
         step = self.ekf.x[[PX, PY, PSI], 0] - before
-        step[2] = (step[2] + math.pi) % (2 * math.pi) - math.pi
+        step[2] = wrap_pi(step[2])
         self.odometry += step
         self.transition = jac @ self.transition
 

@@ -46,57 +46,11 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
+from mapping.grid import SonarGrid
+from mapping.se2 import RelativePose
+
 FloatImage = npt.NDArray[np.float32]
 Matrix = npt.NDArray[np.float64]
-
-
-@dataclass(frozen=True, slots=True)
-class SonarGrid:
-    """Geometry of a Cartesian sonar frame.
-
-    shape: (rows, cols). res_m: pixel size (metres). forward_max_m: forward coordinate of
-    the top edge of row 0. starboard_min_m: starboard coordinate of the left edge of col 0.
-    Pixel (col, row) centre is at forward = forward_max_m - (row + 0.5) * res_m,
-    starboard = starboard_min_m + (col + 0.5) * res_m (metres, sonar frame).
-    """
-
-    shape: tuple[int, int]
-    res_m: float
-    forward_max_m: float
-    starboard_min_m: float
-
-    def pixel_to_metric(self) -> Matrix:
-        """3x3 homogeneous matrix taking (col, row, 1) to (forward, starboard, 1)."""
-        r = self.res_m
-        return np.array(
-            [
-                [0.0, -r, self.forward_max_m - 0.5 * r],
-                [r, 0.0, self.starboard_min_m + 0.5 * r],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-
-
-@dataclass(frozen=True, slots=True)
-class RelativePose:
-    """Pose of a later sonar frame in the frame of an earlier one.
-
-    forward_m, starboard_m: translation (metres, earlier sonar frame);
-    yaw_rad: heading change (radians, clockwise positive).
-    """
-
-    forward_m: float
-    starboard_m: float
-    yaw_rad: float
-
-    def matrix(self) -> Matrix:
-        """3x3 homogeneous matrix taking later-frame (forward, starboard) to earlier-frame."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return np.array([[c, -s, self.forward_m], [s, c, self.starboard_m], [0.0, 0.0, 1.0]])
-
-    @classmethod
-    def from_matrix(cls, m: Matrix) -> RelativePose:
-        return cls(float(m[0, 2]), float(m[1, 2]), math.atan2(m[1, 0], m[0, 0]))
 
 
 @dataclass(frozen=True, slots=True)

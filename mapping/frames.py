@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration, RelativePose
+from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration
 from mapping.polar import Attitude, FanGeometry
 from mapping.posegraph import Edge
 from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame
 from mapping.samples import Ping
+from mapping.se2 import RelativePose, compose, relative_pose, wrap_pi
 
 Array = npt.NDArray[np.float64]
 
@@ -79,22 +80,6 @@ class SonarMount:
         """Sonar-frame relative pose from a vehicle-frame one: M^-1 V M."""
         m = self.matrix()
         return RelativePose.from_matrix(np.linalg.inv(m) @ vehicle.matrix() @ m)
-
-
-def relative_pose(a: Array, b: Array) -> RelativePose:
-    """Pose b in the frame of pose a; poses (x east, y north, heading clockwise from north)."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    s, c = math.sin(a[2]), math.cos(a[2])
-    yaw = (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi
-    return RelativePose(s * dx + c * dy, c * dx - s * dy, yaw)
-
-
-def compose(a: Array, rel: RelativePose) -> Array:
-    """The pose at ``rel`` from pose ``a`` (inverse of ``relative_pose``)."""
-    s, c = math.sin(a[2]), math.cos(a[2])
-    x = a[0] + rel.forward_m * s + rel.starboard_m * c
-    y = a[1] + rel.forward_m * c - rel.starboard_m * s
-    return np.array([x, y, (a[2] + rel.yaw_rad) % (2 * math.pi)])
 
 
 COAST_SPEED_SIGMA_MPS = 0.3
@@ -396,11 +381,7 @@ class LocalRegistration:
             measured.forward_m - expected_vehicle.forward_m,
             measured.starboard_m - expected_vehicle.starboard_m,
         )
-        delta_a = abs(
-            math.degrees(
-                (measured.yaw_rad - expected_vehicle.yaw_rad + math.pi) % (2 * math.pi) - math.pi
-            )
-        )
+        delta_a = abs(math.degrees(wrap_pi(measured.yaw_rad - expected_vehicle.yaw_rad)))
         outcome = FrameOutcome(
             here.index, here.time, False, registration=reg, delta_p_m=delta_p, delta_a_deg=delta_a
         )

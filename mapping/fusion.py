@@ -55,6 +55,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from mapping.samples import GnssFixType
+from mapping.se2 import between, between_jacobian, compose_rows, wrap_pi
 from mapping.sparse import factor_spd, solve_spd
 
 Array = npt.NDArray[np.float64]
@@ -277,10 +278,6 @@ class FusionSolution:
     """Per constraint, the final IRLS weight (1 for non-robust ones)."""
 
 
-def _wrap(angle: Array) -> Array:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
-
-
 _N_COMPASS = 5
 
 
@@ -475,21 +472,13 @@ def _relative_factors(
     meas = np.array([(c.forward_m, c.starboard_m, c.yaw_rad) for c in constraints], float)
     sqrt_w = np.sqrt(weights)[:, None, None]
     wmat = np.stack([c.sqrt_info for c in constraints]) * sqrt_w  # (m, 3, 3)
-    dx = poses[ej, 0] - poses[ei, 0]
-    dy = poses[ej, 1] - poses[ei, 1]
-    psi = poses[ei, 2]
-    s, c = np.sin(psi), np.cos(psi)
-    forward = s * dx + c * dy
-    starboard = c * dx - s * dy
+    rel = between(poses, ei, ej)
     raw = np.column_stack(
-        [forward - meas[:, 0], starboard - meas[:, 1], _wrap(poses[ej, 2] - psi - meas[:, 2])]
+        [rel.forward - meas[:, 0], rel.starboard - meas[:, 1], wrap_pi(rel.turn - meas[:, 2])]
     )
     m = len(constraints)
     # Raw Jacobian (m, 3, 6) over (x_i, y_i, psi_i, x_j, y_j, psi_j).
-    jr = np.zeros((m, 3, 6))
-    jr[:, 0, 0], jr[:, 0, 1], jr[:, 0, 2], jr[:, 0, 3], jr[:, 0, 4] = -s, -c, starboard, s, c
-    jr[:, 1, 0], jr[:, 1, 1], jr[:, 1, 2], jr[:, 1, 3], jr[:, 1, 4] = -c, s, -forward, c, -s
-    jr[:, 2, 2], jr[:, 2, 5] = -1.0, 1.0
+    jr = rel.jacobian()
     start = b.block("relative", np.einsum("mab,mb->ma", wmat, raw))
     jw = np.einsum("mab,mbk->mak", wmat, jr)
     rows = start + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, :, None]
@@ -506,7 +495,7 @@ def _prior_factors(b: _Builder, poses: Array, priors: Sequence[PosePrior], weigh
     target = np.array([p.pose for p in priors], float)
     wmat = np.stack([p.sqrt_info for p in priors]) * np.sqrt(weights)[:, None, None]
     raw = poses[k] - target
-    raw[:, 2] = _wrap(raw[:, 2])
+    raw[:, 2] = wrap_pi(raw[:, 2])
     start = b.block("prior", np.einsum("mab,mb->ma", wmat, raw))
     m = len(priors)
     rows = start + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, :, None]
@@ -698,7 +687,7 @@ class Fusion:
             k, w, h = k[usable], w[usable], d.headings[usable]
             if k.size:
                 k1 = k + 1
-                psi = poses[k, 2] + w * _wrap(poses[k1, 2] - poses[k, 2])
+                psi = poses[k, 2] + w * wrap_pi(poses[k1, 2] - poses[k, 2])
                 f, df = compass_basis(psi)
                 spacing = (
                     float(np.median(np.diff(d.heading_times))) if d.heading_times.size > 1 else 1.0
@@ -706,7 +695,7 @@ class Fusion:
                 inflate = max(1.0, 2.0 * cm.correlation_time_s / max(spacing, 1e-3))
                 sigma = math.sqrt(cm.white_sigma_rad**2 + cm.correlated_sigma_rad**2 * inflate)
                 inv = 1.0 / sigma
-                start = b.block("compass", inv * _wrap(psi + f @ coeffs - h))
+                start = b.block("compass", inv * wrap_pi(psi + f @ coeffs - h))
                 rows = start + np.arange(k.size)
                 slope = 1.0 + df @ coeffs
                 b.add(rows, 3 * k + 2, inv * (1 - w) * slope)
@@ -735,7 +724,7 @@ class Fusion:
             ).astype(np.int64)
             ug = np.clip((middle - self.gyro_knot_times[kg]) / gm.knot_spacing_s, 0.0, 1.0)
             gyro_bias = (1 - ug) * gyro_knots[kg] + ug * gyro_knots[kg + 1]
-            raw = _wrap(poses[kb, 2] - poses[kk, 2] - (measured - gyro_bias * dt))
+            raw = wrap_pi(poses[kb, 2] - poses[kk, 2] - (measured - gyro_bias * dt))
             start = b.block("gyro", inv * raw)
             rows = start + np.arange(kk.size)
             b.add(rows, 3 * kb + 2, inv)
@@ -771,14 +760,8 @@ class Fusion:
         anchors = state[: 3 * lay.n].reshape(lay.n, 3)
         a = anchors[rigid.group]
         o = rigid.offsets
-        s, c = np.sin(a[:, 2]), np.cos(a[:, 2])
-        frames = np.column_stack(
-            [
-                a[:, 0] + o[:, 0] * s + o[:, 1] * c,
-                a[:, 1] + o[:, 0] * c - o[:, 1] * s,
-                (a[:, 2] + o[:, 2]) % (2 * math.pi),
-            ]
-        )
+        frames = compose_rows(a, o)
+        s, c = np.sin(a[:, 2]), np.cos(a[:, 2])  # the composition's Jacobian takes them
         out = np.concatenate([frames.ravel(), state[3 * lay.n :]])
         n = fl.n
         k = np.arange(n)
@@ -977,17 +960,7 @@ class Fusion:
             del lu  # the windows' factors take its room
             blocks = self._windowed_blocks(jac, pair_array, margin_s, window_s)
         for m, (i, j) in enumerate(pair_array):
-            dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
-            psi = poses[i, 2]
-            s, c = math.sin(psi), math.cos(psi)
-            fwd, stb = s * dx + c * dy, c * dx - s * dy
-            jr = np.array(
-                [
-                    [-s, -c, stb, s, c, 0.0],
-                    [-c, s, -fwd, c, -s, 0.0],
-                    [0.0, 0.0, -1.0, 0.0, 0.0, 1.0],
-                ]
-            )
+            jr = between_jacobian(poses[i], poses[j])
             out[m] = jr @ blocks[m] @ jr.T
         return out
 

@@ -11,26 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 from pyproj import CRS, Transformer
 
-TWO_PI = 2.0 * math.pi
-
-
-AngleT = TypeVar("AngleT", float, npt.NDArray[np.float64])
-
-
-def wrap_pi(angle: AngleT) -> AngleT:
-    """Wrap radians to [-pi, pi)."""
-    return (angle + math.pi) % TWO_PI - math.pi
-
-
-def wrap_2pi(angle: float) -> float:
-    """Wrap radians to [0, 2*pi)."""
-    return angle % TWO_PI
+from mapping.se2 import wrap_2pi
 
 
 def utm_epsg(lat_deg: float, lon_deg: float) -> int:

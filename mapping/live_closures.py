@@ -39,10 +39,12 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.closures import world_rotation
-from mapping.fmt import FmtRegistrar, PreparedFrame, RelativePose, SonarGrid
-from mapping.frames import SonarMount, compose, relative_pose
+from mapping.fmt import FmtRegistrar, PreparedFrame
+from mapping.frames import SonarMount
+from mapping.grid import SonarGrid
 from mapping.live_anchor import LiveAnchor
 from mapping.loops import footprint_overlap
+from mapping.se2 import RelativePose, compose, relative_pose
 
 Array = npt.NDArray[np.float64]
 

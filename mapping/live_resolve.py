@@ -48,8 +48,6 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.closures import world_rotation
-from mapping.fmt import RelativePose, SonarGrid
-from mapping.frames import compose
 from mapping.fusion import (
     Fusion,
     FusionData,
@@ -60,8 +58,10 @@ from mapping.fusion import (
     diagonal_sqrt_info,
     sqrt_information,
 )
+from mapping.grid import SonarGrid
 from mapping.mosaic import TileKey
 from mapping.posegraph import Edge
+from mapping.se2 import RelativePose, compose
 from mapping.survey_graph import GraphParams, gyro_at_frames, odometry_constraint
 
 Array = npt.NDArray[np.float64]

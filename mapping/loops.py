@@ -23,9 +23,10 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
-from mapping.frames import LocalRegistration, SonarMount, relative_pose
+from mapping.frames import LocalRegistration, SonarMount
 from mapping.overlap import OverlapRefiner
 from mapping.samples import Ping
+from mapping.se2 import relative_pose
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

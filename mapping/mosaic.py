@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import SonarGrid
+from mapping.grid import SonarGrid
 
 FloatImage = npt.NDArray[np.float32]
 TileKey = tuple[int, int]

@@ -17,9 +17,10 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.ekf import PSI, STATE_SIZE, EkfParams, ImuInput, NavFilter, level_imu
-from mapping.geo import LocalFrame, wrap_pi
+from mapping.geo import LocalFrame
 from mapping.polar import Attitude
 from mapping.samples import AttitudeSample, GnssFix, GnssFixType, HeadingSample, ImuSample
+from mapping.se2 import wrap_pi
 
 Array = npt.NDArray[np.float64]
 

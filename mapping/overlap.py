@@ -28,14 +28,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
-from mapping.fmt import (
-    FloatImage,
-    Matrix,
-    RelativePose,
-    SonarGrid,
-    hamming_taper,
-    parabolic_offset,
-)
+from mapping.fmt import FloatImage, Matrix, hamming_taper, parabolic_offset
+from mapping.grid import SonarGrid
+from mapping.se2 import RelativePose
 
 
 @dataclass(frozen=True, slots=True)

@@ -28,15 +28,8 @@ import numpy.typing as npt
 from mapping.blend import BlendParams, make_scorer
 from mapping.bottom import BottomParams, SeabedAttitude, SonarGeometry, seabed_attitude
 from mapping.ekf import EkfParams
-from mapping.fmt import FmtParams, RelativePose
-from mapping.frames import (
-    FrameOutcome,
-    LocalRegistration,
-    RegistrationParams,
-    SonarMount,
-    compose,
-    relative_pose,
-)
+from mapping.fmt import FmtParams
+from mapping.frames import FrameOutcome, LocalRegistration, RegistrationParams, SonarMount
 from mapping.geo import LocalFrame
 from mapping.loops import (
     LoopParams,
@@ -48,6 +41,7 @@ from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
 from mapping.preprocess import PreprocessParams, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
+from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.sonar_depth import SonarHead
 from mapping.survey_graph import GraphParams

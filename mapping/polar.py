@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import SonarGrid
+from mapping.grid import SonarGrid
 
 Array = npt.NDArray[np.float64]
 

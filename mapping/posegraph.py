@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
+from mapping.se2 import between, wrap_pi
 from mapping.sparse import solve_spd
 
 Array = npt.NDArray[np.float64]
@@ -70,10 +71,6 @@ class Solution:
     initial_cost: float
 
 
-def _wrap(angle: Array) -> Array:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
-
-
 def _residuals_and_jacobian(
     poses: Array,
     priors: Array,
@@ -90,17 +87,13 @@ def _residuals_and_jacobian(
     ej = np.array([e.j for e in edges], np.int64)
     meas = np.array([(e.forward_m, e.starboard_m, e.yaw_rad) for e in edges], float).reshape(m, 3)
     w = np.sqrt(params.lam * np.array([e.weight for e in edges], float))
-    dx = poses[ej, 0] - poses[ei, 0]
-    dy = poses[ej, 1] - poses[ei, 1]
-    psi = poses[ei, 2]
-    s, c = np.sin(psi), np.cos(psi)
-    forward = s * dx + c * dy
-    starboard = c * dx - s * dy
+    rel = between(poses, ei, ej)
+    s, c, forward, starboard = rel.sin, rel.cos, rel.forward, rel.starboard
     r_local = np.column_stack(
         [
             w * (forward - meas[:, 0]),
             w * (starboard - meas[:, 1]),
-            w * sqrt_alpha * _wrap(poses[ej, 2] - psi - meas[:, 2]),
+            w * sqrt_alpha * wrap_pi(rel.turn - meas[:, 2]),
         ]
     )
     rows: list[IntArray] = []
@@ -135,7 +128,7 @@ def _residuals_and_jacobian(
         [
             wp * (poses[:, 0] - priors[:, 0]),
             wp * (poses[:, 1] - priors[:, 1]),
-            wa * _wrap(poses[:, 2] - priors[:, 2]),
+            wa * wrap_pi(poses[:, 2] - priors[:, 2]),
         ]
     )
     pbase = 3 * m + idx * 3

@@ -27,7 +27,8 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.blend import hurtos_weight
-from mapping.fmt import SonarGrid, hamming_taper
+from mapping.fmt import hamming_taper
+from mapping.grid import SonarGrid
 from mapping.polar import (
     Attitude,
     CartesianTables,

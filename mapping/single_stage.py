@@ -20,8 +20,7 @@ from mapping.closures import (
     prune_closures,
     select_closures,
 )
-from mapping.fmt import RelativePose
-from mapping.frames import FrameOutcome, LocalRegistration, SonarMount, compose, relative_pose
+from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.fusion import (
     Fusion,
     FusionParams,
@@ -34,6 +33,7 @@ from mapping.loops import LoopParams, LoopReport, find_candidates, register_hypo
 from mapping.navigation import NavInputs
 from mapping.posegraph import Edge
 from mapping.samples import Ping
+from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.survey_graph import GraphParams, chain_constraints, fusion_data
 
 Array = npt.NDArray[np.float64]

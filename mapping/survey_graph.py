@@ -17,13 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from mapping.frames import (
-    COAST_SPEED_SIGMA_MPS,
-    COAST_YAW_RATE_SIGMA_RPS,
-    FrameOutcome,
-    SonarMount,
-    relative_pose,
-)
+from mapping.frames import COAST_SPEED_SIGMA_MPS, COAST_YAW_RATE_SIGMA_RPS, FrameOutcome, SonarMount
 from mapping.fusion import (
     FusionData,
     RelativeConstraint,
@@ -32,6 +26,7 @@ from mapping.fusion import (
 )
 from mapping.navigation import NavInputs
 from mapping.posegraph import Edge
+from mapping.se2 import relative_pose
 
 Array = npt.NDArray[np.float64]
 

@@ -43,7 +43,7 @@ import numpy.typing as npt
 
 from mapping import kernels
 from mapping.blend import BlendParams, su_blend, weighted_mean_blend
-from mapping.fmt import SonarGrid
+from mapping.grid import SonarGrid
 from mapping.mosaic import (
     SonarPose,
     TileGrid,

@@ -86,7 +86,10 @@ def test_unknown_table_is_an_error_naming_it(tmp_path: Path) -> None:
         ("[daemon]\nsurvey_autostart = 1\n", r"survey_autostart must be true or false"),
         ('[zenoh]\nlisten = "tcp/0.0.0.0:7447"\n', r"\[zenoh\] listen must be a list"),
         ('[mavlink]\nheading_source = "gyro"\n', r"heading_source = 'gyro' is not one of"),
-        ('[daemon]\nvehicle = "a/b"\n', r"vehicle = 'a/b' is not a vehicle id \(an id holds no '/'"),
+        (
+            '[daemon]\nvehicle = "a/b"\n',
+            r"vehicle = 'a/b' is not a vehicle id \(an id holds no '/'",
+        ),
         # The shore and the security sets refuse a space in an id: so does the config.
         ('[daemon]\nvehicle = "boat 1"\n', r"vehicle = 'boat 1' is not a vehicle id"),
         ("[mapping]\nmosaic_res_m = -0.02\n", r"\[mapping\] mosaic_res_m = -0.02 is outside"),

@@ -1,4 +1,4 @@
-"""The daemon's live coverage (``daemon.coverage.LiveCoverage``): frames given one at a
+"""The daemon's live coverage (``daemon.live_coverage.LiveCoverage``): frames given one at a
 time, as the live map turns them final, count as the survey-end pass counts them; an
 engine started afresh in another local frame lands on the same cells; the publication's
 summary, raster and gaps; and the ``[mission]`` table and ``seamap ctl start --area``."""
@@ -16,7 +16,8 @@ import shapely
 from PIL import Image
 
 from daemon.config import CoverageConfig, load_config
-from daemon.coverage import LiveCoverage, area_coverage, coverage_message, coverage_params
+from daemon.coverage import area_coverage, coverage_params
+from daemon.live_coverage import LiveCoverage, coverage_message
 from drivers.formats.area import SurveyArea, area_geojson, parse_area
 from drivers.zenoh_io import CoverageInfo, parse_coverage_summary
 from mapping.coverage import CoverageParams, SeabedCoverage, SonarFan

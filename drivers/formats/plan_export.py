@@ -13,7 +13,8 @@ pictures.
   for QGIS; for a re-plan (``daemon.replan_files``) the gaps too (role ``gap``).
 - ``write_png``: a picture of the plan over the area, with the swath (and the gaps).
 
-The MAVLink numbers the files carry are here too; ``daemon.plan_files`` reads them back.
+The MAVLink numbers the files carry are here too; ``drivers.formats.qgc_plan`` reads the
+plans back (``daemon.plan_files.read_plan`` through it).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import shapely
 from shapely.geometry.polygon import orient
 
 from drivers.formats.area import SurveyArea
+from drivers.formats.qgc_plan import FIRMWARE_TYPES
 from mapping.geo import LocalFrame
 from planning.plan import LegKind, SurveyPlan
 from planning.swath import Swath
@@ -37,7 +39,6 @@ from planning.sweep import MAPPING_LEGS
 
 FloatArray = npt.NDArray[np.float64]
 
-FIRMWARE_TYPES = {"ardupilot": 3, "px4": 12}  # MAV_AUTOPILOT in the .plan's firmwareType
 VEHICLE_TYPE = 10  # MAV_TYPE_GROUND_ROVER
 MAV_CMD_NAV_WAYPOINT = 16
 MAV_CMD_DO_CHANGE_SPEED = 178

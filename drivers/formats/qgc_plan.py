@@ -30,7 +30,10 @@ class Firmware(Enum):
     PX4 = "px4"
 
 
-_QGC_FIRMWARE = {3: Firmware.ARDUPILOT, 12: Firmware.PX4}  # MAV_AUTOPILOT values
+FIRMWARE_TYPES = {Firmware.ARDUPILOT.value: 3, Firmware.PX4.value: 12}
+"""The ``.plan``'s ``mission.firmwareType`` (a MAV_AUTOPILOT value) of each firmware, for
+the reader here and the writer (``drivers.formats.plan_export``)."""
+_QGC_FIRMWARE = {code: Firmware(name) for name, code in FIRMWARE_TYPES.items()}
 
 
 @dataclass(frozen=True)

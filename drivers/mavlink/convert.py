@@ -26,11 +26,11 @@ from mapping.samples import (
     ImuSample,
     RangeSample,
 )
+from mapping.se2 import wrap_2pi
 
 GRAVITY_MPS2 = 9.80665
 """Standard gravity: ArduPilot scales milli-g with exactly this (AP_Math GRAVITY_MSS)."""
 
-TWO_PI = 2.0 * math.pi
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 MAV_AUTOPILOT_INVALID = 8
@@ -87,13 +87,6 @@ _UINT16_UNKNOWN = 65535
 _UINT8_UNKNOWN = 255
 _CENTIDEGREE_RAD = math.radians(0.01)
 _DEGREE_RAD = math.radians(1.0)
-
-
-def wrap_2pi(angle_rad: float) -> float:
-    """An angle in radians brought into [0, 2*pi)."""
-    wrapped = angle_rad % TWO_PI
-    # x % 2pi rounds to exactly 2pi for tiny negative x.
-    return 0.0 if wrapped >= TWO_PI else wrapped
 
 
 def _finite(*values: float) -> bool:

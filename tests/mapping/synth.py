@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import SonarGrid
+from mapping.grid import SonarGrid
 
 WORLD_RES_M = 0.01
 

@@ -24,7 +24,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mapping.fmt import FmtRegistrar, RelativePose, SonarGrid
+from mapping.fmt import FmtRegistrar
+from mapping.grid import SonarGrid
+from mapping.se2 import RelativePose
 from tests.mapping import synth
 from tests.mapping import test_fmt_bed as bed
 from tools.evaluation.baselines import (

@@ -22,7 +22,8 @@ from mapping.blend import (
     su_blend,
     weighted_mean_blend,
 )
-from mapping.fmt import SonarGrid, hamming_taper
+from mapping.fmt import hamming_taper
+from mapping.grid import SonarGrid
 from mapping.mosaic import SonarPose, TileGrid, assemble
 from mapping.polar import FanGeometry, polar_to_ground
 from mapping.preprocess import Preprocessor

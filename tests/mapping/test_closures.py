@@ -15,9 +15,8 @@ from mapping.closures import (
     ClosureReport,
     select_closures,
 )
-from mapping.fmt import RelativePose
-from mapping.frames import relative_pose
 from mapping.fusion import Fusion
+from mapping.se2 import RelativePose, relative_pose
 from tests.mapping.test_fusion import _survey
 
 PERIOD_M = 1.0  # quadrat rows, farm racks

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from mapping.fmt import FmtRegistrar, RelativePose
+from mapping.fmt import FmtRegistrar
+from mapping.se2 import RelativePose
 from tests.mapping import synth
 from tests.mapping import test_fmt_bed as bed
 

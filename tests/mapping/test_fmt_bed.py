@@ -24,9 +24,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FmtRegistrar, RelativePose
+from mapping.fmt import FmtRegistrar
 from mapping.polar import FanGeometry, polar_to_ground
 from mapping.preprocess import Preprocessor, PreprocessParams
+from mapping.se2 import RelativePose
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]

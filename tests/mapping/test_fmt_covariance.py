@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from mapping.fmt import RelativePose
+from mapping.se2 import RelativePose
 from tests.mapping import test_fmt_bed as bed
 
 

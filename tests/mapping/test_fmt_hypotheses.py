@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mapping.fmt import Hypothesis, RelativePose
+from mapping.fmt import Hypothesis
+from mapping.se2 import RelativePose
 from tests.mapping import test_fmt_bed as bed
 
 PERIOD_M = 1.0

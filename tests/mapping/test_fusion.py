@@ -10,7 +10,6 @@ import math
 import numpy as np
 import pytest
 
-from mapping.frames import relative_pose
 from mapping.fusion import (
     Fusion,
     FusionData,
@@ -18,6 +17,7 @@ from mapping.fusion import (
     RelativeConstraint,
     diagonal_sqrt_info,
 )
+from mapping.se2 import relative_pose
 
 SPEED = 0.4
 LANE_M = 20.0

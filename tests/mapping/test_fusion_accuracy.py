@@ -10,7 +10,6 @@ import math
 import numpy as np
 import pytest
 
-from mapping.frames import relative_pose
 from mapping.fusion import (
     Fusion,
     FusionData,
@@ -20,6 +19,7 @@ from mapping.fusion import (
     diagonal_sqrt_info,
 )
 from mapping.samples import GnssFixType
+from mapping.se2 import relative_pose
 from tests.mapping.test_fusion import _path
 
 RATE_HZ = 5.0

@@ -16,8 +16,9 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from mapping.fmt import Registration, RelativePose
-from mapping.frames import LocalRegistration, RegistrationParams, SonarMount, compose, relative_pose
+from mapping.fmt import Registration
+from mapping.frames import LocalRegistration, RegistrationParams, SonarMount
+from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.single_stage import _internal_drift, _rigid_groups
 from mapping.survey_graph import GraphParams, chain_constraints
 

@@ -10,12 +10,12 @@ from typing import Any
 
 import numpy as np
 
-from mapping.fmt import RelativePose, SonarGrid
-from mapping.frames import compose, relative_pose
 from mapping.fusion import Fusion, FusionParams, PosePrior, diagonal_sqrt_info
+from mapping.grid import SonarGrid
 from mapping.live_resolve import Bridge, LiveResolver, ResolveParams, align, pack
 from mapping.mosaic import SonarPose, TileGrid
 from mapping.posegraph import Edge
+from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.survey_graph import GraphParams
 from mapping.tiles import MemorySpill, TileStore
 from tests.mapping.test_fusion import _shape_error, _survey

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from mapping.fmt import RelativePose
 from mapping.frames import SonarMount
+from mapping.se2 import RelativePose
 
 
 def test_vehicle_covariance_matches_the_numerical_jacobian() -> None:

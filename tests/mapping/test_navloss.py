@@ -23,9 +23,9 @@ from daemon.replay import (
     stream_survey,
 )
 from mapping.ekf import EkfParams, ImuInput, NavFilter
-from mapping.fmt import RelativePose
 from mapping.frames import LocalRegistration, RegistrationParams, SonarMount, _Kept
 from mapping.navigation import NavInputs, gyro_epochs
+from mapping.se2 import RelativePose
 from tools.navloss import cut_tlog, measure, window_start
 from tools.sim import simulate
 

@@ -11,9 +11,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from mapping.fmt import RelativePose
-from mapping.frames import relative_pose
 from mapping.overlap import OverlapRefiner
+from mapping.se2 import RelativePose, relative_pose
 from tests.mapping import synth
 
 F32 = npt.NDArray[np.float32]

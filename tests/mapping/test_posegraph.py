@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from mapping.frames import compose, relative_pose
 from mapping.posegraph import Edge, OptimiserParams, optimise
+from mapping.se2 import compose, relative_pose
 
 
 def chain(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -108,8 +108,8 @@ def test_compose_inverts_relative_pose() -> None:
 
 
 def test_sonar_mount_lever_arm_and_yaw() -> None:
-    from mapping.fmt import RelativePose
     from mapping.frames import SonarMount
+    from mapping.se2 import RelativePose
 
     mount = SonarMount(forward_m=-0.45, starboard_m=0.2, yaw_rad=math.radians(30))
     vehicle = np.array([100.0, 200.0, math.radians(90)])  # facing east

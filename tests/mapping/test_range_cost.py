@@ -14,9 +14,10 @@ import math
 import numpy as np
 import pytest
 
-from mapping.fmt import FmtRegistrar, RelativePose
+from mapping.fmt import FmtRegistrar
 from mapping.polar import FanGeometry, fan_grid
 from mapping.preprocess import Preprocessor, PreprocessParams, ground_cell_m
+from mapping.se2 import RelativePose
 from tests.mapping import test_fmt_bed as bed
 
 TILT_DEG = 15.0

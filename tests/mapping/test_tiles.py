@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from mapping.blend import BlendParams
-from mapping.fmt import SonarGrid
+from mapping.grid import SonarGrid
 from mapping.mosaic import SonarPose, TileGrid
 from mapping.tiles import MemorySpill, TileStore
 

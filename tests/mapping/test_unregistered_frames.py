@@ -16,9 +16,10 @@ import pytest
 
 from daemon.config import load_config
 from daemon.replay import pipeline_params, replay
-from mapping.frames import FrameOutcome, SonarMount, relative_pose
+from mapping.frames import FrameOutcome, SonarMount
 from mapping.pipeline import CONFIDENCE_FLOOR, blend_confidence
 from mapping.posegraph import Edge
+from mapping.se2 import relative_pose
 from mapping.single_stage import _parents
 from mapping.survey_graph import GraphParams, chain_constraints
 from tools.sim.survey import simulate

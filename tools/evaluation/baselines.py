@@ -57,7 +57,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FloatImage, Matrix, RelativePose, SonarGrid
+from mapping.fmt import FloatImage, Matrix
+from mapping.grid import SonarGrid
+from mapping.se2 import RelativePose
 
 U8Image = npt.NDArray[np.uint8]
 BoolImage = npt.NDArray[np.bool_]

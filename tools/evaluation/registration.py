@@ -33,11 +33,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FmtParams, FmtRegistrar, RelativePose
-from mapping.frames import LocalRegistration, SonarMount, compose, relative_pose
+from mapping.fmt import FmtParams, FmtRegistrar
+from mapping.frames import LocalRegistration, SonarMount
 from mapping.geo import LocalFrame
 from mapping.preprocess import PreprocessParams
 from mapping.samples import Ping
+from mapping.se2 import RelativePose, compose, relative_pose
 from tools.evaluation.baselines import REGISTRATION_BASELINES
 
 Array = npt.NDArray[np.float64]
