@@ -12,7 +12,7 @@ One asyncio loop; one supervised task per concern (``daemon.supervisor``):
   ``health_interval_s``; **watchdog**: pets systemd while the loop, the recorder and the
   mapping thread are alive; **control**: the local control socket (``daemon.control``).
 - **coverage**: every ``COVERAGE_EVERY_S`` the open survey's live coverage
-  (``daemon.coverage.LiveCoverage``: each frame counted where the live map placed it)
+  (``daemon.live_coverage.LiveCoverage``: each frame counted where the live map placed it)
   becomes the status's ``coverage`` and a zenoh publication; with the survey's area, its
   covered fraction and gaps. The area comes with the start request (``seamap survey
   start`` sends its plan's, ``seamap ctl start --area``), else from ``[mission] area``,
@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from daemon.config import SiteConfig
-from daemon.coverage import CoverageMessage, LiveCoverage, final_message
+from daemon.live_coverage import CoverageMessage, LiveCoverage, final_message
 from daemon.health import HealthMonitor, LiveParts
 from daemon.mapper import MappingWorker
 from daemon.memory import return_large_blocks
