@@ -342,7 +342,9 @@ def test_settings_come_from_the_config_with_options_overriding(tmp_path):
     assert settings.zenoh.listen == ["tcp/0.0.0.0:7447"]
     assert (settings.vehicle, settings.survey) == ("b2", "s9")
     # A connect endpoint without a port is refused where the site file is read.
-    with pytest.raises(SeamapError, match=r"\[zenoh\] connect = 'tcp/boat' must be a zenoh"):
+    with pytest.raises(
+        SeamapError, match=r"\[zenoh\] connect = 'tcp/boat' is not a zenoh endpoint"
+    ):
         config_from_dict({"zenoh": {"connect": ["tcp/boat"]}})
 
 

@@ -188,7 +188,7 @@ def test_a_pass_that_kept_killing_the_daemon_is_given_up(tmp_path: Path) -> None
         ("[daemon]\nmax_backlog_frames = 0\n", "max_backlog_frames = 0 is outside 1..10000"),
         (
             '[zenoh]\nlisten = ["tcp/0.0.0.0"]\n',
-            "[zenoh] listen = 'tcp/0.0.0.0' must be a zenoh locator",
+            "[zenoh] listen = 'tcp/0.0.0.0' is not a zenoh endpoint",
         ),
     ],
 )
