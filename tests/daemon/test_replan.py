@@ -28,7 +28,7 @@ from planning import Area, LegKind, Polygon, cells_geometry
 from planning.replan import plan_gaps
 from seamap.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FRAME = LocalFrame.around(43.1, 5.9)
 HALF = swath_from_config(SiteConfig()).half_width_m
 CLEARANCE = 2.0

@@ -40,7 +40,7 @@ from drivers.zenoh_io import (
 from seamap.shore.station import ShoreSettings, ShoreStation
 from seamap.shore.web import WebServer
 from tests.ports import free_tcp_port
-from tests.test_shore import (  # the same grid and tiles as the station's own tests
+from tests.seamap.test_shore import (  # the same grid and tiles as the station's own tests
     EPSG,
     Tile,
     loopback_peer,

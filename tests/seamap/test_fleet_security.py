@@ -45,7 +45,7 @@ from seamap.router import router_settings
 from seamap.security import FleetSecuritySet, init_fleet_security
 from seamap.shore import ShoreSettings, ShoreStation
 from tests.ports import free_tcp_port
-from tests.test_fleet import BOATS, SURVEY, _holds, _pose, _tile
+from tests.seamap.test_fleet import BOATS, SURVEY, _holds, _pose, _tile
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")
 WAIT_S = 20.0

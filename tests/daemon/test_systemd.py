@@ -16,7 +16,7 @@ import pytest
 
 from daemon.config import DaemonConfig, MavlinkConfig, SonarConfig, load_config
 
-SYSTEMD_DIR = Path(__file__).resolve().parents[1] / "systemd"
+SYSTEMD_DIR = Path(__file__).resolve().parents[2] / "systemd"
 UNIT = SYSTEMD_DIR / "seamap.service"
 EXAMPLE_CONFIG = SYSTEMD_DIR / "seamap.toml"
 SYSUSERS = SYSTEMD_DIR / "seamap.sysusers"

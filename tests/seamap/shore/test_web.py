@@ -21,7 +21,7 @@ from drivers.errors import SeamapError
 from seamap.shore.state import ShoreEvent
 from seamap.shore.web import WebView, parse_web_address
 from tests.ports import free_tcp_port
-from tests.shore.conftest import (
+from tests.seamap.shore.conftest import (
     STATUS,
     WAIT_S,
     Shore,
@@ -32,7 +32,7 @@ from tests.shore.conftest import (
     pose,
     wait_until,
 )
-from tests.test_shore import COL0, ROW0, seamap_shore, tile_info, tile_values
+from tests.seamap.test_shore import COL0, ROW0, seamap_shore, tile_info, tile_values
 
 
 class EventReader:

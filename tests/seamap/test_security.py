@@ -22,8 +22,8 @@ from daemon.config import ZenohConfig, config_from_dict, dump_config
 from drivers.zenoh_io import control_key, json_bytes, open_session, pose_key, session_config
 from tests.daemon.harness import free_udp_port
 from tests.ports import free_tcp_port
-from tests.test_cli import assert_one_line_error, seamap
-from tests.test_zenoh_acl import (
+from tests.seamap.test_cli import assert_one_line_error, seamap
+from tests.seamap.test_zenoh_acl import (
     QUIET_S,
     TIMEOUT_S,
     VEHICLE,

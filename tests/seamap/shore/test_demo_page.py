@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from tests.ports import free_tcp_port
-from tests.shore import chromium
+from tests.seamap.shore import chromium
 
 SEAMAP = str(Path(sys.executable).parent / "seamap")
 SCREENSHOT_ENV = "SEAMAP_DEMO_SCREENSHOT"

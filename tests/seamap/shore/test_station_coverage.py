@@ -16,14 +16,14 @@ from drivers.zenoh_io import CoverageKeyParts, json_bytes
 from seamap.shore import ShoreSettings, ShoreStation
 from seamap.shore.state import ShoreState
 from tests.ports import free_tcp_port
-from tests.shore.conftest import (
+from tests.seamap.shore.conftest import (
     CoverageSource,
     coverage_cells,
     coverage_info,
     coverage_png,
     coverage_summary,
 )
-from tests.test_shore import SURVEY, VEHICLE, WAIT_S, FakeBoat, loopback_peer
+from tests.seamap.test_shore import SURVEY, VEHICLE, WAIT_S, FakeBoat, loopback_peer
 
 MakeStation = Callable[[], tuple[ShoreStation, io.StringIO]]
 

@@ -49,7 +49,7 @@ from drivers.zenoh_io import (
 )
 from tests.ports import free_tcp_port
 
-SYSTEMD_DIR = Path(__file__).resolve().parents[1] / "systemd"
+SYSTEMD_DIR = Path(__file__).resolve().parents[2] / "systemd"
 BOAT_JSON5 = SYSTEMD_DIR / "zenoh-boat.json5"
 SHORE_JSON5 = SYSTEMD_DIR / "zenoh-shore.json5"
 USERS_EXAMPLE = SYSTEMD_DIR / "zenoh-users.example.txt"

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from pyproj import Proj, Transformer
 
-from tests.shore import chromium
-from tests.shore.conftest import (
+from tests.seamap.shore import chromium
+from tests.seamap.shore.conftest import (
     GAP_HOLE,
     GAP_OUTER,
     GAP_TWO,
@@ -28,7 +28,7 @@ from tests.shore.conftest import (
     pose,
     wait_until,
 )
-from tests.test_shore import COL0, EPSG, RES_M, ROW0, TILE_M, tile_values
+from tests.seamap.test_shore import COL0, EPSG, RES_M, ROW0, TILE_M, tile_values
 
 SCREENSHOT_ENV = "SEAMAP_SHORE_SCREENSHOT"
 """When set, the page's screenshot (boats, mosaics, panel) is saved to this path."""
