@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from mapping.se2 import turn
+
 Array = npt.NDArray[np.float64]
 
 _C = slice(0, 2)  # correction of the chain's position (east, north)
@@ -181,14 +183,14 @@ class LiveAnchor:
         self._last_heading_update = time
         h = np.zeros((1, _N))
         h[0, _H] = 1.0
-        innovation = np.array([math.remainder(residual_rad - float(h[0] @ self.x), 2 * math.pi)])
+        innovation = np.array([turn(residual_rad - float(h[0] @ self.x))])
         self._update(h, innovation, np.array([[p.heading_sigma_rad**2]]))
 
     def closure_innovation(self, measured: Array, covariance: Array) -> tuple[Array, Array]:
         """For a closure's measurement of (c_e, c_n, h) with its covariance (3 x 3): the
         innovation (heading wrapped) and its covariance against the current state."""
         nu = np.asarray(measured, float) - self.x[_CH]
-        nu[2] = math.remainder(float(nu[2]), 2 * math.pi)
+        nu[2] = turn(float(nu[2]))
         s = self.P[np.ix_(_CH, _CH)] + covariance
         return nu, s
 

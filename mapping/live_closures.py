@@ -44,7 +44,7 @@ from mapping.frames import SonarMount
 from mapping.grid import SonarGrid
 from mapping.live_anchor import LiveAnchor
 from mapping.loops import footprint_overlap
-from mapping.se2 import RelativePose, compose, relative_pose
+from mapping.se2 import RelativePose, compose, relative_pose, turn
 
 Array = npt.NDArray[np.float64]
 
@@ -155,7 +155,7 @@ class Closure:
     @property
     def drift(self) -> Array:
         d = self.measured - self.keyframe_correction
-        d[2] = math.remainder(float(d[2]), 2 * math.pi)
+        d[2] = turn(float(d[2]))
         return d
 
 
@@ -222,7 +222,7 @@ class KeyframeStore:
         last = self._last
         if last is not None:
             moved = math.hypot(pose[0] - last.pose[0], pose[1] - last.pose[1])
-            turned = abs(math.remainder(float(pose[2] - last.pose[2]), 2 * math.pi))
+            turned = abs(turn(float(pose[2] - last.pose[2])))
             if moved < p.keyframe_spacing_m and turned < math.radians(p.keyframe_turn_deg):
                 return False
         stored = np.clip(np.rint(image * np.float32(255.0)), 0, 255).astype(np.uint8)
@@ -303,7 +303,7 @@ class KeyframeStore:
 
 def _wrapped(v: Array) -> Array:
     out = np.asarray(v, float).copy()
-    out[2] = math.remainder(float(out[2]), 2 * math.pi)
+    out[2] = turn(float(out[2]))
     return out
 
 
@@ -485,7 +485,7 @@ class LiveClosures:
             n_hypotheses=p.hypotheses,
         )
         rotation = world_rotation(float(keyframe.pose[2]))
-        turned = abs(math.remainder(float(sonar[2] - keyframe.sonar[2]), 2 * math.pi))
+        turned = abs(turn(float(sonar[2] - keyframe.sonar[2])))
         floor = np.diag([p.sigma_floor_m**2] * 2 + [math.radians(p.sigma_floor_deg) ** 2])
         if turned > math.pi / 2:
             look_f, look_s = p.opposite_look_sigma_m

@@ -26,6 +26,12 @@ def wrap_pi(angle: AngleT) -> AngleT:
     return (angle + math.pi) % TWO_PI - math.pi
 
 
+def turn(angle: float) -> float:
+    """The nearest equivalent of an angle difference, in [-pi, pi], exactly (IEEE
+    remainder: no rounding, where ``wrap_pi``'s sum may round): the live engine's."""
+    return math.remainder(angle, TWO_PI)
+
+
 def wrap_2pi(angle: float) -> float:
     """Wrap radians to [0, 2*pi) (exactly: ``x % 2pi`` rounds to 2pi for tiny negative x)."""
     wrapped = angle % TWO_PI

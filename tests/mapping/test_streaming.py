@@ -120,7 +120,7 @@ def test_memory_follows_the_area_not_the_survey_length() -> None:
     for _, sample in hectare.events:
         engine.add(sample)  # type: ignore[arg-type]
         peak_tiles = max(peak_tiles, len(engine.tiles.active))
-        peak_live = max(peak_live, len(engine._live))
+        peak_live = max(peak_live, len(engine.drawing.live))
     engine.flush()
     # The boat drove ~50 m along a lane: many tiles made, few held at any time.
     assert len(engine.tiles.all_keys()) >= 25
@@ -211,13 +211,13 @@ def test_a_re_solve_redraws_over_the_next_frames_and_ends_drawn_where_it_put_the
     resolve = replace(ResolveParams(), redraw_m=0.001, every_s=5.0, redraws_per_frame=1.0)
     engine = stream.engine(resolve=resolve)
     per_sample: list[int] = []
-    redraw_one = engine._redraw_one
+    redraw_one = engine.drawing.redraw_one
 
-    def counted(*args: Any) -> None:
+    def counted(*args: Any) -> Any:
         per_sample[-1] += 1
-        redraw_one(*args)
+        return redraw_one(*args)
 
-    engine._redraw_one = counted  # type: ignore[method-assign,assignment]
+    engine.drawing.redraw_one = counted  # type: ignore[method-assign,assignment]
     for sample in stream.samples:
         per_sample.append(0)
         engine.add(sample)
@@ -229,7 +229,7 @@ def test_a_re_solve_redraws_over_the_next_frames_and_ends_drawn_where_it_put_the
     assert max(per_sample[:-1]) <= 2
     frames = sum(isinstance(s, Ping) for s in stream.samples)
     assert sum(per_sample[:-1]) <= resolve.redraws_per_frame * frames + 1
-    assert not engine._to_redraw
+    assert not engine.drawing.to_redraw
     # How long the drawn map lagged the solution is measured.
     stats = engine.stats
     assert 0 < stats.redraw_wait_mean_s <= stats.redraw_wait_max_s
