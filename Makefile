@@ -81,4 +81,4 @@ soak: $(STAMP)
 	$(BIN)/python -m tools.soak --out soak-out
 
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache $(DEMO_OUT) overload-out navloss-out soak-out $(PAPER_OUT)
+	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache .import_linter_cache $(DEMO_OUT) overload-out navloss-out soak-out $(PAPER_OUT)
