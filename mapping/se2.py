@@ -60,12 +60,23 @@ class RelativePose:
         return cls(float(m[0, 2]), float(m[1, 2]), math.atan2(m[1, 0], m[0, 0]))
 
 
+def to_world(forward: float, starboard: float, heading: float) -> tuple[float, float]:
+    """A displacement (forward, starboard) of a frame heading ``heading`` as (east, north)."""
+    s, c = math.sin(heading), math.cos(heading)
+    return forward * s + starboard * c, forward * c - starboard * s
+
+
+def to_body(dx: float, dy: float, heading: float) -> tuple[float, float]:
+    """A displacement (east, north) as (forward, starboard) of a frame heading ``heading``
+    (the inverse of ``to_world``)."""
+    s, c = math.sin(heading), math.cos(heading)
+    return s * dx + c * dy, c * dx - s * dy
+
+
 def relative_pose(a: Array, b: Array) -> RelativePose:
     """Pose b in the frame of pose a; poses (x east, y north, heading clockwise from north)."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    s, c = math.sin(a[2]), math.cos(a[2])
-    yaw = wrap_pi(b[2] - a[2])
-    return RelativePose(s * dx + c * dy, c * dx - s * dy, yaw)
+    forward, starboard = to_body(b[0] - a[0], b[1] - a[1], a[2])
+    return RelativePose(forward, starboard, wrap_pi(b[2] - a[2]))
 
 
 def compose(a: Array, rel: RelativePose) -> Array:

@@ -39,7 +39,7 @@ from mapping.polar import Attitude
 from mapping.posegraph import Edge
 from mapping.preprocess import SonarFrame
 from mapping.samples import Ping
-from mapping.se2 import turn
+from mapping.se2 import to_body, to_world, turn
 from mapping.stream_navigation import PingNavigation
 from mapping.stream_window import Resolution
 
@@ -264,8 +264,7 @@ class LiveChain:
             if step.scaled:
                 forward *= 1.0 + self.anchor.scale
                 starboard *= 1.0 + self.anchor.scale
-            s, c = math.sin(heading), math.cos(heading)
-            moved = np.array([forward * s + starboard * c, forward * c - starboard * s])
+            moved = np.array(to_world(forward, starboard, heading))
             self._xy[index] = self._xy[last] + moved
             self._heading[index] = self._heading[last] + step.yaw_rad
             if step.bridged:
@@ -325,9 +324,8 @@ class LiveChain:
         if odometry is None or before is None:
             return None
         dx, dy, dyaw = odometry - before
-        heading = self._heading[last] + self.anchor.heading
-        s, c = math.sin(heading), math.cos(heading)
-        return float(s * dx + c * dy), float(c * dx - s * dy), float(dyaw)
+        forward, starboard = to_body(dx, dy, self._heading[last] + self.anchor.heading)
+        return float(forward), float(starboard), float(dyaw)
 
     def close_loop(self, index: int, time: float, image: npt.NDArray[np.float32]) -> list[Closure]:
         """Register the frame against a keyframe of an earlier pass when one overlaps
