@@ -118,7 +118,7 @@ def test_example_config_loads() -> None:
 
 
 def test_example_config_sets_every_daemon_sonar_mavlink_key() -> None:
-    """The example documents each key; a key added to seamap/config.py must show up here."""
+    """The example documents each key; a key added to daemon/config.py must show up here."""
     tables = tomllib.loads(EXAMPLE_CONFIG.read_text(encoding="utf-8"))
     for name, cls in (("daemon", DaemonConfig), ("sonar", SonarConfig), ("mavlink", MavlinkConfig)):
         assert set(tables[name]) == {f.name for f in dataclasses.fields(cls)}, name

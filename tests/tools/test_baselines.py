@@ -6,7 +6,7 @@ Pairs come from the FMT test bed (``test_fmt_bed``): its sonar renders pings of 
 from two poses a known motion apart and the mapper's ``Preprocessor`` makes the frames
 FMT registers. The bed's sonar here has a milder speckle (gamma shape 8, a few pings'
 worth averaged) than its default 2: at 2, SIFT finds no consensus on about a third of
-pairs (which is the paper's finding, quoted in ``mapping/baselines.py``), and these
+pairs (which is the paper's finding, quoted in ``tools/evaluation/baselines.py``), and these
 tests are about the conventions and the fit, not about which method copes with speckle.
 
 Tolerances come from 80 registrations (10 starting poses, the 4 motions below, each pair
@@ -58,7 +58,7 @@ MOTIONS = [
 ]
 """Forward and back, to port and starboard, turning either way: up to 15 pixels of
 motion where the fan's texture is (ECC from the identity settles on a wrong optimum
-about one time in four at 20 pixels, as ``mapping/baselines.py`` says)."""
+about one time in four at 20 pixels, as ``tools/evaluation/baselines.py`` says)."""
 
 START = (7.0, 6.5, 0.4)
 """The earlier frame's sonar pose (east m, north m, heading rad clockwise from north)."""
