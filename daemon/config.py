@@ -47,6 +47,10 @@ class DaemonConfig:
     final_pass: bool = True
     """Run the survey-end pass (the whole survey re-solved, the result folder written)
     when a survey ends and on SIGTERM."""
+    workers: int = -1
+    """Worker processes the live engine's stages run in beside the daemon's own (-1: the
+    cores less one; 0: none, every stage in the daemon's process). The map is the same
+    for any number."""
 
 
 @dataclass(frozen=True)
@@ -163,6 +167,26 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class LiveConfig:
+    """The live map's economies (``mapping.stream_params``): the live map is for watching
+    the survey and deciding where to go; the survey-end pass is the deliverable and keeps
+    the full settings whatever these say. The defaults were chosen by runs of the
+    streaming matrix (README, "Speed")."""
+
+    registration_res_m: float = 0.04
+    """Pixel size the live registrations work on (m): coarser is faster (the FFTs' work
+    goes with the pixel count), finer follows faint texture better."""
+    yaw_from_gyro: bool = True
+    """Take each live registration's turn from the gyro where the filter's gyro joins the
+    two frames, and search no rotation; false: search it as the survey-end pass does."""
+    candidates: int = 8
+    """Blending candidates each live tile keeps per pixel (the survey-end pass keeps 16)."""
+    redraws_per_frame: float = 0.5
+    """Frames a live re-solve moved that are drawn again per new frame, on average: lower
+    costs less and leaves the drawn map further behind the re-solved poses."""
+
+
+@dataclass(frozen=True)
 class CoverageConfig:
     """How well each seabed cell was seen (``mapping.coverage``; the result folder's
     coverage.tif and, with the survey's area, gaps.geojson)."""
@@ -227,6 +251,7 @@ class SiteConfig:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
 
@@ -248,6 +273,7 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("daemon", "min_free_mb"): (0.0, 1e9),
     ("daemon", "max_backlog_frames"): (1, 10000),
     ("daemon", "tile_memory_mb"): (0.0, 1e6),
+    ("daemon", "workers"): (-1, 256),
     # Where the sonar sits on a small boat: within 10 m of the antenna.
     ("sonar", "mount_x_m"): (-10.0, 10.0),
     ("sonar", "mount_y_m"): (-10.0, 10.0),
@@ -278,6 +304,11 @@ _RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("mapping", "gnss_bias_tau_s"): (1.0, 1e5),
     ("mapping", "gnss_lag_s"): (0.0, 2.0),
     ("mapping", "sonar_latency_s"): (0.0, 2.0),
+    # Live registrations from a mosaic pixel's 5 mm to 20 cm (a fan 5 m deep is 25 px).
+    ("live", "registration_res_m"): (0.005, 0.2),
+    # At least one candidate; 64 is more than any blend keeps.
+    ("live", "candidates"): (1, 64),
+    ("live", "redraws_per_frame"): (0.0, 100.0),
     # Coverage cells from 5 cm (a few mosaic pixels; finer says nothing the registration's
     # centimetres allow) to 5 m (a fan's width: coarser cells cannot tell a lane's edge).
     ("coverage", "cell_m"): (0.05, 5.0),

@@ -39,6 +39,9 @@ log = logging.getLogger(__name__)
 U = TypeVar("U")
 FinalHook = Callable[[LocalFrame, float, npt.NDArray[np.float64]], None]
 
+IDLE_POLL_S = 0.05
+"""With no sample coming, the thread lets the engine take its front's finished frames this
+often (a front in a worker process finishes them while the thread waits)."""
 MAX_QUEUED_SAMPLES = 200_000
 """A hard bound on everything queued (about a minute of navigation at full rates while the
 engine is stuck); beyond it samples are dropped and counted."""
@@ -183,18 +186,28 @@ class MappingWorker:
 
     def _run(self) -> None:
         while True:
+            idle = False
+            sample: Sample | None = None
             with self._wake:
-                while not self._queue:
-                    self._wake.wait()
-                sample = self._queue.popleft()
+                if not self._queue:
+                    self._wake.wait(IDLE_POLL_S)
+                if self._queue:
+                    sample = self._queue.popleft()
+                else:
+                    idle = True
             try:
-                if sample is None:
+                if idle:
+                    # Nothing came: the stages after the front take what it has finished
+                    # (a worker's results), so the map does not wait for the next sample.
+                    self._engine.take_ready()
+                elif sample is None:
                     self._engine.flush()
                 else:
                     self._engine.add(sample)
             except Exception as exc:
                 self._failed(exc)
-            if sample is None:
+            if not idle and sample is None:
+                self._engine.close()
                 self._processed(math.inf)
                 return
             self._processed(self._engine.processed_upto)
@@ -212,6 +225,8 @@ class MappingWorker:
             extra={"fields": {"reason": self.stats.last_error}},
         )
         log.debug("engine failure", exc_info=True)
+        with contextlib.suppress(Exception):
+            self._engine.close()
         self._engine = self._new_engine()
         self._engine_stats = self._engine.stats
         self._finals_upto = -1  # the new engine numbers its frames from 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 import heapq
 import math
 import os
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -22,10 +23,18 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from daemon.config import EchosounderConfig, MappingConfig, SiteConfig, SonarConfig, load_config
+from daemon.config import (
+    EchosounderConfig,
+    LiveConfig,
+    MappingConfig,
+    SiteConfig,
+    SonarConfig,
+    load_config,
+)
 from daemon.coverage import AreaSource, write_coverage
 from daemon.memory import return_large_blocks
 from daemon.recording import segments
+from daemon.workers import live_front
 from drivers.errors import SeamapError
 from drivers.formats.area import read_area
 from drivers.formats.results import write_geotiff, write_png, write_report, write_trajectory
@@ -34,6 +43,7 @@ from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
 from mapping.bottom import BottomParams
 from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
+from mapping.live_resolve import ResolveParams
 from mapping.mosaic import assemble
 from mapping.pipeline import Mode, NavSamples, PipelineParams, SurveyResult, map_survey
 from mapping.preprocess import lit_min_range
@@ -104,6 +114,21 @@ def pipeline_params(config: SiteConfig) -> PipelineParams:
         blend=replace(defaults.blend, method=m.blending),
         single_stage=single_stage_params(m, defaults.single_stage),
         bottom=bottom_params(config.echosounder, defaults.bottom, config.sonar.seabed_from_pings),
+    )
+
+
+def streaming_params(
+    pipeline: PipelineParams, live: LiveConfig, tile_memory_mb: float | None = 256.0
+) -> StreamingParams:
+    """The live engine's settings: the pipeline's, and the site config's [live] table
+    (the daemon, replay's streaming mode and bench take them from here)."""
+    return StreamingParams(
+        pipeline=pipeline,
+        tile_memory_mb=tile_memory_mb,
+        live_registration_res_m=live.registration_res_m,
+        live_yaw_from_gyro=live.yaw_from_gyro,
+        live_candidates=live.candidates,
+        resolve=replace(ResolveParams(), redraws_per_frame=live.redraws_per_frame),
     )
 
 
@@ -218,13 +243,36 @@ def stream_survey(
     spill: TileSpill | None = None,
     final_spill: TileSpill | None = None,
     tile_memory_mb: float | None = 256.0,
+    final_pass: bool = True,
+    live: LiveConfig | None = None,
+    workers: int = 0,
 ) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     """The streaming engine fed with the logs in arrival order (as the daemon would be),
     then its survey-end pass. Returns the final result and the live one (the live poses
-    and tiles as they stood before the survey-end pass) with the engine's statistics."""
-    engine = StreamingEngine(
-        mount, StreamingParams(pipeline=params, tile_memory_mb=tile_memory_mb), spill=spill
-    )
+    and tiles as they stood before the survey-end pass) with the engine's statistics;
+    without ``final_pass`` (``[daemon] final_pass = false``), the live one twice.
+    ``workers``: worker processes for the live engine's stages (``daemon.workers``)."""
+    streaming = streaming_params(params, live or LiveConfig(), tile_memory_mb)
+    front = live_front(mount, streaming, workers, log=_say)
+    engine = StreamingEngine(mount, streaming, spill=spill, front=front)
+    try:
+        return _stream(engine, pings, nav, progress, final_spill, final_pass)
+    finally:
+        engine.close()
+
+
+def _say(line: str) -> None:
+    print(f"seamap replay: {line}", file=sys.stderr, flush=True)
+
+
+def _stream(
+    engine: StreamingEngine,
+    pings: Callable[[], Iterator[Ping]],
+    nav: NavSamples,
+    progress: Callable[[str, int, int], None] | None,
+    final_spill: TileSpill | None,
+    final_pass: bool,
+) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     arrivals: Iterator[Sample] = heapq.merge(
         nav.imu, nav.gnss, nav.heading, nav.attitude, nav.ranges, pings(),
         key=lambda sample: sample.time,
@@ -234,15 +282,18 @@ def stream_survey(
         if progress is not None and isinstance(sample, Ping):
             progress("streaming", engine.stats.frames_received, engine.stats.frames_received)
     engine.flush()
+    if not final_pass:
+        live_only = engine.live_result()
+        return live_only, (live_only, engine.stats)
     final = engine.finish(pings, progress, final_spill)
     poses = np.array(engine.poses) if engine.poses else np.zeros((0, 3))
-    live = replace(
+    live_map = replace(
         final,
         poses=poses,
         mapped=np.all(np.isfinite(poses), axis=1),
         mosaic=engine.tiles,
     )
-    return final, (live, engine.stats)
+    return final, (live_map, engine.stats)
 
 
 Scorer = Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]
@@ -264,6 +315,7 @@ def replay(
     params: PipelineParams | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     area: Path | None = None,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Map the logs and write the result folder; returns the report.
 
@@ -271,8 +323,9 @@ def replay(
     (Oculus logs; .tlog segments, or one .tlog or DataFlash .bin). ``config``, when given,
     is used instead of loading ``config_path`` (which may then be None). ``area``: the
     survey's area (GeoJSON or a lat,lon list, ``drivers.formats.area``), read before any
-    mapping: its covered fraction and gaps go into the result folder. Bad input ends in
-    one SeamapError naming the files.
+    mapping: its covered fraction and gaps go into the result folder. ``workers``: the
+    live engine's worker processes (streaming; None: ``[daemon] workers``). Bad input
+    ends in one SeamapError naming the files.
     """
     started = time.perf_counter()
     return_large_blocks()  # the tiles' stacks go back to the system when freed
@@ -295,7 +348,8 @@ def replay(
             result, live = stream_survey(
                 pings, samples, mount, params, progress,
                 DiskSpill(spill_root / "live"), DiskSpill(spill_root / "final"),
-                config.daemon.tile_memory_mb,
+                config.daemon.tile_memory_mb, config.daemon.final_pass, config.live,
+                config.daemon.workers if workers is None else workers,
             )  # fmt: skip
         else:
             result = map_survey(
@@ -394,7 +448,9 @@ def replay(
         }
     if scorer is not None:
         report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m)
-        if live is not None:
+        if live is not None and live[0] is result:
+            report["accuracy_live"] = report["accuracy"]  # no survey-end pass: the live map
+        elif live is not None:
             live_image, live_west, live_north = render(live[0])
             report["accuracy_live"] = scorer(
                 live[0], live_image, live_west, live_north, params.mosaic_res_m
@@ -413,10 +469,11 @@ def replay_survey(
     scorer: Scorer | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     area: Path | None = None,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Replay every segment of a recorded survey folder (``sonar-NNN.oculus`` and
     ``nav-NNN.tlog``, in segment order) into ``out``; returns the report. ``area``: the
-    survey's area file, for its gaps (``replay``).
+    survey's area file, for its gaps, and ``workers`` (``replay``).
 
     Empty segments (a daemon run that heard nothing from that device) are left out.
     SeamapError naming the folder if it is missing or holds no sonar or no nav segment, or
@@ -435,8 +492,9 @@ def replay_survey(
     if not sonar:
         raise SeamapError(f"{survey_dir}: no sonar message was recorded (sonar segments empty)")
     return replay(
-        sonar, nav, None, mode, out, config=config, scorer=scorer, progress=progress, area=area
-    )
+        sonar, nav, None, mode, out, config=config, scorer=scorer, progress=progress, area=area,
+        workers=workers,
+    )  # fmt: skip
 
 
 def _size(path: Path) -> int:

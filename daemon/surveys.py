@@ -31,7 +31,7 @@ from daemon.health import LiveParts
 from daemon.live_coverage import LiveCoverage
 from daemon.mapper import MappingWorker
 from daemon.recording import SurveyRecorder
-from daemon.replay import mount_from_config, pipeline_params
+from daemon.replay import mount_from_config, pipeline_params, streaming_params
 from daemon.survey import SurveyState, new_survey_id, surveys_dir
 from daemon.survey_files import (
     AREA_FILE,
@@ -41,9 +41,10 @@ from daemon.survey_files import (
     save_state,
     survey_area,
 )
+from daemon.workers import live_front
 from drivers.formats.area import SurveyArea, parse_area, read_area
 from drivers.formats.tilespill import DiskSpill
-from mapping.streaming import PoseUpdate, StreamingEngine, StreamingParams, TileUpdate
+from mapping.streaming import PoseUpdate, StreamingEngine, TileUpdate
 
 # The daemon's lines keep the logger they always had ("service:" in the journal).
 log = logging.getLogger("daemon.service")
@@ -140,15 +141,20 @@ class Surveys:
         )
         state.segments = max(state.segments + 1, recorder.stats.segments)
         save_state(survey_dir, state)
-        params = StreamingParams(
-            pipeline=pipeline_params(self.config),
-            tile_memory_mb=self.config.daemon.tile_memory_mb,
+        params = streaming_params(
+            pipeline_params(self.config), self.config.live, self.config.daemon.tile_memory_mb
         )
         mount = mount_from_config(self.config.sonar)
+        workers = self.config.daemon.workers
         coverage = LiveCoverage(mount, self.config.coverage, survey_area(survey_dir))
         sink = self.sink
         mapper = MappingWorker(
-            lambda: StreamingEngine(mount, params, spill=DiskSpill(live_tiles)),
+            lambda: StreamingEngine(
+                mount,
+                params,
+                spill=DiskSpill(live_tiles),
+                front=live_front(mount, params, workers, log=log.error),
+            ),
             loop=asyncio.get_running_loop(),
             max_backlog_frames=self.config.daemon.max_backlog_frames,
             on_pose=sink.on_pose,

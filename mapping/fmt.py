@@ -79,6 +79,10 @@ class FmtParams:
     covariance_prior_dof: weight, in degrees of freedom, of 1 against the sectors'
     chi-square per degree of freedom in the factor that scales the covariance.
     fallback_yaw_sigma_deg: yaw sigma when fewer than two sectors have a peak.
+    known_yaw_iterations: turns of the later frame when the prior's yaw is known (a
+    gyro's: ``register``'s ``yaw_known``): no spectral rotation search, the iteration
+    starts at the prior's yaw. 1: the sectors' fit at that turn is the answer (exact to
+    first order in the gyro's error, hundredths of a degree over a ping).
     """
 
     max_rotation_deg: float = 8.0
@@ -98,6 +102,7 @@ class FmtParams:
     covariance_scale: float = 2.0
     covariance_prior_dof: float = 2.0
     fallback_yaw_sigma_deg: float = 1.0
+    known_yaw_iterations: int = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,7 +154,9 @@ class PreparedFrame:
     windowed: FloatImage  # zero-mean, tapered, padded to the translation transform
     image: FloatImage  # unpadded, as given
     spectrum: npt.NDArray[np.complex64]  # rfft2 of windowed
-    polar_spectrum: npt.NDArray[np.complex64]  # rfft2 of the log-polar log-magnitude
+    polar_spectrum: npt.NDArray[np.complex64] | None = None
+    """rfft of the log-polar log-magnitude spectrum, once a rotation search asks for it
+    (``FmtRegistrar.rotation``): a pair whose turn the gyro gives never does."""
     window: FloatImage | None = None  # unpadded taper, where the frame has data
     sectors: _Sectors | None = None  # when it is the earlier frame of a pair
     rows_spectrum: npt.NDArray[np.complex64] | None = None
@@ -378,8 +385,6 @@ class FmtRegistrar:
         mean = float(values.mean()) if values.size else 0.0
         rows, cols = self.grid.shape
         windowed = (frame - mean) * window
-        square = np.zeros((self.n, self.n), np.float32)
-        square[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = windowed
         padded = np.zeros(self.shape_t, np.float32)
         padded[self.row0_t : self.row0_t + rows, self.col0_t : self.col0_t + cols] = windowed
         rows_spectrum = scipy.fft.rfft(padded, axis=1, workers=1)
@@ -387,10 +392,23 @@ class FmtRegistrar:
             windowed=padded,
             image=frame,
             spectrum=scipy.fft.fft(rows_spectrum, axis=0, workers=1).astype(np.complex64),
-            polar_spectrum=self._polar_spectrum(scipy.fft.rfft2(square, workers=1)),
             window=window,
             rows_spectrum=rows_spectrum,
         )
+
+    def _polar(self, frame: PreparedFrame) -> npt.NDArray[np.complex64]:
+        """The frame's log-polar spectrum (``PreparedFrame.polar_spectrum``), computed once
+        when a rotation search first asks for it: the windowed frame on the square
+        transform."""
+        if frame.polar_spectrum is None:
+            rows, cols = self.grid.shape
+            inner = frame.windowed[
+                self.row0_t : self.row0_t + rows, self.col0_t : self.col0_t + cols
+            ]
+            square = np.zeros((self.n, self.n), np.float32)
+            square[self.row0 : self.row0 + rows, self.col0 : self.col0 + cols] = inner
+            frame.polar_spectrum = self._polar_spectrum(scipy.fft.rfft2(square, workers=1))
+        return frame.polar_spectrum
 
     def _sectors(self, frame: PreparedFrame) -> _Sectors:
         """The frame's bearing sectors, computed once, when the frame is first the earlier
@@ -527,7 +545,7 @@ class FmtRegistrar:
         """
         # Plain (not phase-only) correlation along the angle axis, summed over radii:
         # whitening the polar spectra would amplify the speckle's flat spectrum.
-        cross = (earlier.polar_spectrum * np.conj(later.polar_spectrum)).sum(axis=0)
+        cross = (self._polar(earlier) * np.conj(self._polar(later))).sum(axis=0)
         line = scipy.fft.irfft(cross, n=self.params.n_angles)
         line /= max(float(np.sqrt(self._energy(earlier) * self._energy(later))), 1e-12)
         n_angles = self.params.n_angles
@@ -546,7 +564,7 @@ class FmtRegistrar:
         return angle, float(line[best])
 
     def _energy(self, frame: PreparedFrame) -> float:
-        spectrum = frame.polar_spectrum
+        spectrum = self._polar(frame)
         return float((np.abs(spectrum) ** 2).sum())
 
     def _rotated_spectrum(
@@ -834,6 +852,7 @@ class FmtRegistrar:
         *,
         prior_sigma_m: float | None = None,
         n_hypotheses: int = 1,
+        yaw_known: bool = False,
     ) -> Registration:
         """Relative pose of ``later`` in the sonar frame of ``earlier``, its covariance
         and, when ``n_hypotheses`` > 1, that many distinct peaks as hypotheses (best
@@ -844,11 +863,18 @@ class FmtRegistrar:
         translation peaks by a Gaussian log-likelihood. The whole correlation surface is
         searched either way. search_m: the former search radius, now taken as
         ``prior_sigma_m`` when that is not given (nothing is confined any more).
+        yaw_known: the prior's yaw is a gyro's: no spectral rotation search, the later
+        frame turned by it and the sectors' fit refined ``known_yaw_iterations`` times.
         """
         p = self.params
         sigma_m = prior_sigma_m if prior_sigma_m is not None else search_m
         sigma_px = sigma_m / self.grid.res_m if prior is not None and sigma_m else None
-        yaw, _ = self.rotation(earlier, later, prior.yaw_rad if prior is not None else 0.0)
+        iterations = max(p.refine_iterations, 1)
+        if yaw_known and prior is not None:
+            yaw = prior.yaw_rad
+            iterations = max(p.known_yaw_iterations, 1)
+        else:
+            yaw, _ = self.rotation(earlier, later, prior.yaw_rad if prior is not None else 0.0)
         if prior is not None and abs(yaw - prior.yaw_rad) <= math.radians(p.prior_trust_deg):
             # Only where the iteration starts (the answer is its fixed point, whatever the
             # start): a gyro's yaw change is nearer than the spectra's, which static
@@ -862,7 +888,7 @@ class FmtRegistrar:
         # The fit's angle as a function of the turn it was measured at has its fixed point
         # at the answer; secant steps find it whatever the fit's gain.
         previous: tuple[float, float] | None = None
-        for iteration in range(max(p.refine_iterations, 1)):
+        for iteration in range(iterations):
             surfaces, surface = self._surfaces(
                 sectors.spectra, self._rotated_spectrum(later, angle)
             )
@@ -874,7 +900,7 @@ class FmtRegistrar:
             if previous is not None and turn != previous[1]:
                 measured = (turn - previous[1]) / (angle - previous[0])
                 slope = measured if -3.0 < measured < -0.3 else slope
-            if abs(turn) <= tolerance or iteration == p.refine_iterations - 1:
+            if abs(turn) <= tolerance or iteration == iterations - 1:
                 # What is left of the turn, at the fit's measured gain (0 at gain 1).
                 fit = self._turned(fit, turn * (1.0 + 1.0 / slope))  # yaw is -angle
                 break

@@ -197,6 +197,10 @@ class LocalRegistration:
     params: RegistrationParams = field(default_factory=RegistrationParams)
     attitude: Callable[[float], Attitude | None] | None = None
     """The boat's roll and pitch at a ping's stamp (None: project every ping level)."""
+    yaw_from_gyro: bool = False
+    """Between frames the filter's gyro joins (one gyro epoch), take the turn from it and
+    search no rotation (``FmtRegistrar.register``'s ``yaw_known``): the live engine's
+    choice (``StreamingParams.live_yaw_from_gyro``); the survey-end pass searches."""
 
     def __post_init__(self) -> None:
         self.preprocessor: Preprocessor | None = None
@@ -373,8 +377,13 @@ class LocalRegistration:
             prior_sigma = math.hypot(prior_sigma, sigma_p)
         expected_sonar = self.mount.sonar_relative(expected_vehicle)
         # The whole correlation surface is searched; the prediction weighs its peaks.
+        gyro = here.gyro is not None and here.gyro == reference.gyro
         reg = self.registrar.register(
-            reference.prepared, here.prepared, expected_sonar, prior_sigma_m=prior_sigma
+            reference.prepared,
+            here.prepared,
+            expected_sonar,
+            prior_sigma_m=prior_sigma,
+            yaw_known=self.yaw_from_gyro and gyro,
         )
         measured = self.mount.vehicle_relative(reg.relative)
         delta_p = math.hypot(
@@ -396,6 +405,13 @@ class LocalRegistration:
         else:
             outcome.accepted = True
         return outcome
+
+    @property
+    def rate(self) -> tuple[tuple[float, float, float], float, float] | None:
+        """The chain's velocity and turn rate (forward, starboard m/s, yaw rad/s), the
+        time of the last step it was measured with and the span it covers; None before
+        the first registered step."""
+        return self._rate
 
     def chain_rate(self, time: float, max_age_s: float) -> tuple[float, float, float] | None:
         """The chain's velocity and turn rate (vehicle frame: forward, starboard m/s, yaw

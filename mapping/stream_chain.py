@@ -11,7 +11,9 @@ drifts; its anchor (``mapping.live_anchor``) carries the correction the fixes, t
 heading and the live loop closures (``mapping.live_closures``, against keyframes of the
 final map) say it needs, and a frame's live pose is its chained pose so corrected.
 
-What the chain needs of the later stages comes to it as inputs: the frames that became
+Each frame comes preprocessed and registered from the front stage
+(``mapping.stream_front``), with the chain's rate and the fan's shape. What the chain
+needs of the later stages comes to it as inputs: the frames that became
 final (they offer keyframes, and are forgotten unless the chain goes on from them), and
 each live re-solve's outcome (``mapping.stream_window.Resolution``: keyframes moved, the
 drawn map's frame, the compass error, where the chain carries on from).
@@ -22,24 +24,22 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
+from mapping.fmt import FmtRegistrar
+from mapping.frames import SonarMount
 from mapping.fusion import compass_basis
 from mapping.grid import SonarGrid
 from mapping.live_anchor import LiveAnchor
 from mapping.live_closures import Closure, LiveClosures
 from mapping.live_resolve import Bridge, DrawnFrame
-from mapping.polar import Attitude
 from mapping.posegraph import Edge
-from mapping.preprocess import SonarFrame
-from mapping.samples import Ping
 from mapping.se2 import to_body, to_world, turn
+from mapping.stream_front import ChainRate, FanShape, FrontResult, rate_at
 from mapping.stream_navigation import PingNavigation
 from mapping.stream_window import Resolution
 
@@ -157,24 +157,15 @@ def compass_error(coefficients: Array | None, heading: float) -> float:
 
 
 class LiveChain:
-    """See the module docstring. ``attitude``: the roll, pitch and seabed a ping stamped
-    so is projected with (``NavigationRecord.ping_attitude``)."""
+    """See the module docstring."""
 
-    def __init__(
-        self,
-        mount: SonarMount,
-        params: StreamingParams,
-        attitude: Callable[[float], Attitude | None],
-    ) -> None:
+    def __init__(self, mount: SonarMount, params: StreamingParams) -> None:
         self.mount = mount
         self.params = params
-        p = params.pipeline
-        live_preprocess = p.preprocess
-        if params.live_registration_res_m is not None:
-            live_preprocess = replace(
-                p.preprocess, registration_res_m=params.live_registration_res_m
-            )
-        self.local = LocalRegistration(mount, live_preprocess, p.fmt, p.registration, attitude)
+        self._rate: ChainRate | None = None
+        """The chain's rate the front measured, as of the frame last taken."""
+        self._shape: FanShape | None = None
+        self._fine: FmtRegistrar | None = None
         self.anchor = LiveAnchor(params.anchor)
         self.closures: LiveClosures | None = None  # once the sonar's geometry is known
         # Per chained frame (dropped when it becomes final, but the last): its chained
@@ -200,23 +191,33 @@ class LiveChain:
         """A fix (time less its lag, local x, y) to tie the chain to once it reaches it."""
         self._fixes.append(fix)
 
-    def preprocess(self, ping: Ping) -> SonarFrame:
-        """The ping on the blending and registration grids (``LocalRegistration.frame``)."""
-        return self.local.frame(ping)
+    def take_front(self, result: FrontResult) -> None:
+        """A frame from the front stage: the chain's rate as it measured it there, and
+        the fan's shape when it changed."""
+        self._rate = result.rate
+        if result.shape is not None:
+            self._shape = result.shape
+            self._fine = None
+
+    @property
+    def shape(self) -> FanShape:
+        """The fan of the frames taken last."""
+        assert self._shape is not None
+        return self._shape
 
     @property
     def grid(self) -> SonarGrid:
-        """The blending grid of the frames preprocessed last."""
-        preprocessor = self.local.preprocessor
-        grid = preprocessor.grid if preprocessor else None
-        assert grid is not None
-        return grid
+        """The blending grid of the frames taken last."""
+        return self.shape.grid
 
-    def register(
-        self, index: int, time: float, frame: SonarFrame, at: PingNavigation
-    ) -> FrameOutcome:
-        """Register and validate a preprocessed frame (``LocalRegistration.register``)."""
-        return self.local.register(index, time, frame, at.prior, at.odometry, at.gyro)
+    @property
+    def fine_registrar(self) -> FmtRegistrar:
+        """A registrar on the blending grid, for the few registrations that need every
+        bit of detail (loop closures between lanes)."""
+        if self._fine is None:
+            shape = self.shape
+            self._fine = FmtRegistrar(shape.grid, shape.mask, self.params.pipeline.fmt)
+        return self._fine
 
     def link(self, index: int, time: float, at: PingNavigation, edge: Edge | None) -> Bridge | None:
         """Chain an accepted frame onto the previous one: by its registration, else by the
@@ -249,7 +250,7 @@ class LiveChain:
             registered = edge if edge is not None and edge.i == last else None
             rate = None
             if registered is None:
-                rate = self.local.chain_rate(time, self.params.bridge_velocity_age_s)
+                rate = rate_at(self._rate, time, self.params.bridge_velocity_age_s)
             elif span > 0:
                 self._registered_velocity = (
                     registered.forward_m / span,
@@ -332,15 +333,13 @@ class LiveChain:
         (``mapping.live_closures``); a confirmed closure updates the anchor. Returns the
         closures the anchor took (for the live re-solve)."""
         if self.params.closures.enabled:
-            preprocessor = self.local.preprocessor
-            assert preprocessor is not None
             if self.closures is None:
-                bearings = preprocessor.fan.bearings_rad
+                shape = self.shape
                 self.closures = LiveClosures(
                     self.params.closures,
                     self.mount,
-                    (preprocessor.min_range_m, preprocessor.fan.max_range_m),
-                    max(abs(float(bearings[0])), abs(float(bearings[-1]))),
+                    (shape.min_range_m, shape.max_range_m),
+                    shape.half_width_rad,
                 )
             self.closures.consider(
                 index,
@@ -349,7 +348,7 @@ class LiveChain:
                 self._xy[index],
                 self._heading[index],
                 image,
-                self.local.fine_registrar,
+                self.fine_registrar,
                 self.anchor,
             )
         taken: list[Closure] = []

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Container, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -108,8 +108,11 @@ class LiveDrawing:
         p = params.pipeline
         self.scorer = make_scorer(p.blend)
         memory = None if params.tile_memory_mb is None else int(params.tile_memory_mb * 2**20)
+        blend = p.blend
+        if params.live_candidates is not None:
+            blend = replace(blend, top_n=params.live_candidates)
         self.tiles = TileStore(
-            TileGrid(p.mosaic_res_m, p.tile_px), p.blend, spill, params.evict_after_s, memory
+            TileGrid(p.mosaic_res_m, p.tile_px), blend, spill, params.evict_after_s, memory
         )
         self.live: dict[int, LiveImage] = {}
         """The frames in the live window, with what blending them again needs."""

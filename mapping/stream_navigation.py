@@ -23,6 +23,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -44,6 +45,7 @@ from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, P
 from mapping.se2 import turn
 
 Array = npt.NDArray[np.float64]
+T = TypeVar("T")
 NavSample = ImuSample | GnssFix | HeadingSample | AttitudeSample | RangeSample
 
 LIVE_BOTTOM_REFRESH_S = 2.0
@@ -70,6 +72,29 @@ class Measured:
 
 
 NOTHING = Measured()
+
+
+class _Head(Sequence[T]):
+    """The first ``count`` items of a sequence, without a copy (copied only when the
+    bottom model is rebuilt, every few seconds)."""
+
+    def __init__(self, items: Sequence[T], count: int) -> None:
+        self._items = items
+        self._count = min(count, len(items))
+
+    def __len__(self) -> int:
+        return self._count
+
+    @overload
+    def __getitem__(self, index: int) -> T: ...
+    @overload
+    def __getitem__(self, index: slice) -> Sequence[T]: ...
+    def __getitem__(self, index: int | slice) -> T | Sequence[T]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(self._count))]
+        if not -self._count <= index < self._count:
+            raise IndexError(index)
+        return self._items[index % self._count]
 
 
 @dataclass(frozen=True, slots=True)
@@ -243,13 +268,20 @@ class NavigationRecord:
         return PingNavigation(prior, odometry, gyro, self._last_compass, self._compass_epoch)
 
     def ping_attitude(
-        self, stamp: float, times: Sequence[float], poses: Sequence[Array]
+        self,
+        stamp: float,
+        times: Sequence[float],
+        poses: Sequence[Array],
+        upto: int | None = None,
     ) -> Attitude | None:
         """The attitude a ping stamped ``stamp`` is projected with: its roll and pitch
         (``tilt_at``; level when the pipeline does not project the attitude) with the
         seabed's altitude and slope under it (``bottom_at``). ``times``, ``poses``: the
-        live map's frames so far (NaN where rejected), which place the soundings."""
+        live map's frames so far (NaN where rejected), which place the soundings; only
+        the first ``upto`` of them (None: all)."""
         tilt = self.tilt_at(stamp) if self.pipeline.project_attitude else None
+        if upto is not None and upto < len(times):
+            return self.bottom_at(stamp, tilt, _Head(times, upto), _Head(poses, upto))
         return self.bottom_at(stamp, tilt, times, poses)
 
     def bottom_at(

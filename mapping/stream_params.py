@@ -49,6 +49,20 @@ class StreamingParams:
     live_registration_res_m: float | None = 0.03
     """Pixel size of the live registrations (None: the pipeline's). 3 cm halves the FFT
     work; the survey-end pass registers again at the pipeline's full resolution."""
+    live_yaw_from_gyro: bool = True
+    """The live registrations take each pair's turn from the gyro (where the filter's gyro
+    joins the two frames) and search no rotation: the sectors' fit at the gyro's turn is
+    the answer (``FmtParams.known_yaw_iterations``). The survey-end pass searches."""
+    live_candidates: int | None = 8
+    """Blending candidates each live tile keeps per pixel (None: the pipeline's
+    ``top_n``, 16): half the slots to scan for each frame offered and half the memory of
+    a tile; the survey-end pass keeps the pipeline's."""
+    front_depth: int = 4
+    """Pings the front stage (``mapping.stream_front``) may hold beyond the frames the
+    stages after it have chained: it works that far ahead in a worker process. The
+    soundings that place a ping's seabed are taken over the live poses this many frames
+    back, wherever the front runs (so the map does not depend on where it runs): 0.4 s
+    at 10 Hz, against a bottom model rebuilt every few seconds."""
     final_mode: Mode = Mode.SINGLE_STAGE
     """The survey-end pass: single-stage, or two-stage for long surveys."""
     closure_hold_frames: int = 100

@@ -27,21 +27,31 @@ need as arguments and results (so that each could run on its own, with queues be
 - ``mapping.stream_reorder.ReorderBuffer``: the samples in time order, each once;
 - ``mapping.stream_navigation.NavigationRecord``: the filter, the local frame, the
   attitude and seabed a ping is projected with, and the record for the survey-end pass;
-- ``mapping.stream_chain.LiveChain``: each frame preprocessed, registered and chained,
-  the chain's anchor and its loop closures, the frames' live poses;
+- ``mapping.stream_front``: each ping preprocessed and registered, here or in a worker
+  process (``front``), up to ``front_depth`` pings ahead of the stages after it;
+- ``mapping.stream_chain.LiveChain``: each frame chained, the chain's anchor and its
+  loop closures, the frames' live poses;
 - ``mapping.stream_window.LiveWindow``: which frames are live and which final, and the
   live re-solve;
 - ``mapping.stream_drawing.LiveDrawing``: the tiles, frames blended and drawn again,
   renders and the tiles that leave memory.
 
 The engine holds what is the live map's own (each frame's stamp and pose), routes each
-stage's results to the next, and publishes the poses and tiles.
+stage's results to the next, and publishes the poses and tiles. The stages after the
+front take the navigation's measurements and the front's frames in one queue, in the
+order the samples were released, whenever the front's results arrive: they see the same
+sequence wherever the front runs. The one thing the front is given from them, the live
+poses that place the echosounder's soundings (``ping_attitude``), is taken as each frame
+was first chained, ``front_depth`` frames back. The map is the same, to the bit, for any
+placement of the front.
 """
 
 from __future__ import annotations
 
 import math
 import time as clock
+from array import array
+from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -60,12 +70,12 @@ from mapping.pipeline import (
     SurveyResult,
     map_survey,
 )
-from mapping.polar import Attitude
 from mapping.posegraph import Edge
 from mapping.samples import Ping
 from mapping.stream_chain import LiveChain
 from mapping.stream_drawing import LiveDrawing, Redraw, RenderedTile
-from mapping.stream_navigation import NavigationRecord, NavSample
+from mapping.stream_front import Front, FrontJob, FrontResult, FrontStage, InlineFront
+from mapping.stream_navigation import Measured, NavigationRecord, NavSample, PingNavigation
 from mapping.stream_params import StreamingParams
 from mapping.stream_reorder import Admission, ReorderBuffer, Sample
 from mapping.stream_window import LiveWindow
@@ -106,6 +116,25 @@ class TileUpdate:
     """Frames whose pixels reached this tile since its previous update (for latency)."""
 
 
+@dataclass(frozen=True, slots=True)
+class _Navigated:
+    """A navigation sample's measurements, waiting for the stages after the front."""
+
+    time: float
+    measured: Measured
+
+
+@dataclass(frozen=True, slots=True)
+class _Sent:
+    """A ping handed to the front, waiting for its result."""
+
+    index: int
+    time: float
+    at: PingNavigation
+    sent: float
+    """``time.perf_counter`` when it was handed over."""
+
+
 @dataclass
 class StreamStats:
     frames_received: int = 0
@@ -129,6 +158,8 @@ class StreamStats:
     tile_spill_error: str | None = None
     rejected: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
+    front_wait_s: float = 0.0
+    """Time the engine waited for the front's results (a front in a worker process)."""
 
     @property
     def redraw_wait_mean_s(self) -> float:
@@ -150,7 +181,10 @@ class StreamingEngine:
         on_pose: Callable[[PoseUpdate], None] | None = None,
         on_tile: Callable[[TileUpdate], None] | None = None,
         spill: TileSpill | None = None,
+        front: FrontStage | None = None,
     ) -> None:
+        """``front``: where the front stage runs (``mapping.stream_front``; None: in this
+        process, each ping as it is released)."""
         self.mount = mount
         self.params = params or StreamingParams()
         self.on_pose = on_pose
@@ -159,7 +193,14 @@ class StreamingEngine:
         p = self.params
         self.reorder = ReorderBuffer(p.reorder_s)
         self.navigation = NavigationRecord(mount, p.pipeline, p.gnss_time_offset_s)
-        self.chain = LiveChain(mount, p, self._ping_attitude)
+        self.front: FrontStage = front if front is not None else InlineFront(Front(mount, p))
+        self._queue: deque[_Navigated | _Sent] = deque()
+        """What the stages after the front have still to take, in release order."""
+        self._sent = 0
+        """Pings handed to the front."""
+        self._now = -math.inf
+        """The stamp of the sample the stages after the front take (or took last)."""
+        self.chain = LiveChain(mount, p)
         self.window = LiveWindow(mount, p)
         self.drawing = LiveDrawing(mount, p, spill)
         # Per frame, survey-long but small (a few numbers a frame).
@@ -169,6 +210,12 @@ class StreamingEngine:
         """Every frame's registration, kept for the survey-end pass only when it reuses them
         (``reuse_registrations``): 300 bytes a frame otherwise held for nothing."""
         self.edges: list[Edge] = []
+        self.sent_at = array("d")
+        """Per frame: ``time.perf_counter`` when its ping went to the front (latency)."""
+        self._placed: list[Array] = []
+        """Each frame's pose when it was chained (NaN where rejected), never changed
+        after: what places the echosounder's soundings for the front (``_send``), the
+        same whenever the front asks."""
 
     # -- the stages' parts others read -----------------------------------------------------
     @property
@@ -183,8 +230,9 @@ class StreamingEngine:
 
     @property
     def local(self) -> LocalRegistration:
-        """The live preprocessing and registration."""
-        return self.chain.local
+        """The live preprocessing and registration (a front in this process only)."""
+        assert isinstance(self.front, InlineFront), "the front runs in another process"
+        return self.front.front.local
 
     @property
     def anchor(self) -> LiveAnchor:
@@ -233,87 +281,148 @@ class StreamingEngine:
 
     @property
     def processed_upto(self) -> float:
-        """Every sample stamped at or before this time (s) has been processed."""
-        return self.reorder.released
+        """Every sample stamped at or before this time (s) has been processed (by every
+        stage: what the front still holds has not)."""
+        return self._released if self._queue else self.reorder.released
 
     @property
     def _released(self) -> float:
-        """``processed_upto``; while a sample is processed, its stamp (``tools.bench``
-        reads it when a tile is published)."""
-        return self.reorder.released
+        """The stamp of the sample the stages after the front take now, or took last
+        (``tools.bench`` reads it when a tile is published)."""
+        return self._now
 
     def flush(self) -> None:
         """Process everything held (the end of the stream), render what changed, and
         make every remaining pose final."""
         self._process(self.reorder.release(math.inf))
+        self._take(everything=True)
         self._solve_window(final=True)
         self._redraw(self._released, 0.0, everything=True)
         self._render(force=True)
 
+    def take_ready(self) -> None:
+        """Let the stages after the front take what the front has finished, without a new
+        sample (a daemon between samples)."""
+        self._take()
+
+    def close(self) -> None:
+        """Let go of the front (its worker process, if it has one)."""
+        self.front.close()
+
     def _process(self, samples: Iterable[Sample]) -> None:
         for sample in samples:
             if isinstance(sample, Ping):
-                self._frame(sample)
+                self._send(sample)
             else:
                 self._navigate(sample)
+            self._take()
 
     # -- navigation --------------------------------------------------------------------
     def _navigate(self, sample: NavSample) -> None:
         started = clock.perf_counter()
-        measured = self.navigation.take(sample)
+        self._queue.append(_Navigated(sample.time, self.navigation.take(sample)))
+        self.stats.time("ekf", started)
+
+    def _navigated(self, event: _Navigated) -> None:
+        """The stages after the front take a navigation sample's measurements."""
+        started = clock.perf_counter()
+        measured = event.measured
         self.window.take_navigation(measured)
         if measured.chain_fix is not None:
             self.chain.take_fix(measured.chain_fix)
         self.stats.time("ekf", started)
 
-    def _ping_attitude(self, stamp: float) -> Attitude | None:
-        """The attitude and seabed a ping stamped ``stamp`` is projected with (the chain's
-        preprocessing asks), over the live map's frames so far."""
-        return self.navigation.ping_attitude(stamp, self.times, self.poses)
-
     # -- frames --------------------------------------------------------------------------
-    def _frame(self, ping: Ping) -> None:
-        stats = self.stats
-        stats.frames_received += 1
-        index = len(self.times)
+    def _send(self, ping: Ping) -> None:
+        """Hand a ping to the front with the filter's pose at its stamp and the attitude
+        and seabed to project it with, over the live map's frames up to ``front_depth``
+        before it as they were chained (waiting for the stages after the front to have
+        them): what the front is given does not depend on how far behind it they are."""
+        self.stats.frames_received += 1
+        index = self._sent
+        self._sent += 1
+        upto = max(index - self.params.front_depth, 0)
+        self._take(upto=upto)
         started = clock.perf_counter()
         at = self.navigation.at_ping(ping)
-        started = stats.time("ekf", started)
-        sonar_frame = self.chain.preprocess(ping)
-        started = stats.time("preprocess", started)
-        outcome = self.chain.register(index, ping.time, sonar_frame, at)
-        started = stats.time("registration", started)
-        self.times.append(ping.time)
+        attitude = self.navigation.ping_attitude(ping.time, self.times, self._placed, upto)
+        self.stats.time("ekf", started)
+        self.front.submit(FrontJob(index, ping, at, attitude))
+        sent = clock.perf_counter()
+        self.sent_at.append(sent)
+        self._queue.append(_Sent(index, ping.time, at, sent))
+
+    def _take(self, upto: int | None = None, everything: bool = False) -> None:
+        """The stages after the front take what waits for them, in order: navigation at
+        once, frames as the front's results come; they wait for a result while more than
+        ``front_depth`` frames are with the front, or until frame ``upto`` is chained
+        (``everything``: until nothing waits)."""
+        queue = self._queue
+        while queue:
+            head = queue[0]
+            if isinstance(head, _Navigated):
+                queue.popleft()
+                self._now = head.time
+                self._navigated(head)
+                continue
+            must = (
+                everything
+                or (upto is not None and len(self.times) < upto)
+                or self._sent - len(self.times) > self.params.front_depth
+            )
+            if not must and not self.front.ready():
+                return
+            started = clock.perf_counter()
+            result = self.front.result()
+            self.stats.front_wait_s += clock.perf_counter() - started
+            queue.popleft()
+            self._now = head.time
+            self._frame(head, result)
+
+    def _frame(self, sent: _Sent, result: FrontResult) -> None:
+        stats = self.stats
+        index = sent.index
+        if result.index != index:
+            raise RuntimeError(f"the front returned frame {result.index} for frame {index}")
+        self.chain.take_front(result)
+        for stage, seconds in result.seconds.items():
+            stats.stage_s[stage] = stats.stage_s.get(stage, 0.0) + seconds
+        started = clock.perf_counter()
+        at = sent.at
+        sonar_frame, outcome = result.frame, result.outcome
+        self.times.append(sent.time)
         if self.params.reuse_registrations:
             self.outcomes.append(outcome)
         if not outcome.accepted:
             stats.frames_rejected += 1
             stats.rejected[outcome.reason] = stats.rejected.get(outcome.reason, 0) + 1
             self.poses.append(np.full(3, np.nan))
+            self._placed.append(self.poses[-1])
             return
         assert at.prior is not None
         stats.frames_mapped += 1
-        bridge = self.chain.link(index, ping.time, at, outcome.edge)
-        self.window.add_frame(index, ping.time, at.prior, outcome, bridge, self.times)
+        bridge = self.chain.link(index, sent.time, at, outcome.edge)
+        self.window.add_frame(index, sent.time, at.prior, outcome, bridge, self.times)
         outcome.registration = None  # the edges are what is kept of it
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
         started = stats.time("blending", started)
-        self.window.take_closures(self.chain.close_loop(index, ping.time, sonar_frame.image))
+        self.window.take_closures(self.chain.close_loop(index, sent.time, sonar_frame.image))
         started = stats.time("closures", started)
         pose = self.chain.live_pose(index)
         self.poses.append(pose)
+        self._placed.append(pose.copy())
         # Blend at once at the chained pose.
         sonar = self.mount.sonar_pose(pose)
-        self.drawing.draw(index, ping.time, sonar_frame, self.chain.grid, sonar, self.frame)
+        self.drawing.draw(index, sent.time, sonar_frame, self.chain.grid, sonar, self.frame)
         stats.time("blending", started)
         self._emit_pose(index, final=False)
         if self.window.solve_due:
             self._solve_window(final=False)
-        if self.window.resolve_due(ping.time):
-            self._resolve(ping.time)
+        if self.window.resolve_due(sent.time):
+            self._resolve(sent.time)
         if self.params.resolve.enabled:
-            self._redraw(ping.time, self.params.resolve.redraws_per_frame)
+            self._redraw(sent.time, self.params.resolve.redraws_per_frame)
         self._render(force=False)
 
     # -- the live window -------------------------------------------------------------
@@ -436,6 +545,31 @@ class StreamingEngine:
         )  # fmt: skip
 
     # -- survey end ------------------------------------------------------------------------
+    def live_result(self) -> SurveyResult:
+        """The live map as it stands (call ``flush`` first for the whole survey): each
+        frame's live pose, the live tiles, the live registrations; what a survey without
+        its survey-end pass (``[daemon] final_pass = false``) leaves. The filter's priors
+        are not kept live (NaN)."""
+        if self.frame is None:
+            raise ValueError("no navigation fix: the live map has no frame to be placed in")
+        poses = np.array(self.poses) if self.poses else np.zeros((0, 3))
+        times = np.array(self.times, float)
+        stages = {stage: float(seconds) for stage, seconds in self.stats.stage_s.items()}
+        return SurveyResult(
+            frame=self.frame,
+            mode=self.params.final_mode,
+            times=times,
+            priors=np.full((times.size, 3), np.nan),
+            poses=poses,
+            mapped=np.all(np.isfinite(poses), axis=1),
+            outcomes=list(self.outcomes),
+            rejected=Counter(self.stats.rejected),
+            timings=stages,
+            mosaic=self.tiles,
+            edges=list(self.edges),
+            mount=self.mount,
+        )
+
     def finish(
         self,
         pings: Callable[[], Iterable[Ping]],

@@ -27,9 +27,10 @@ import multiprocessing
 import shutil
 import sys
 import time
+import tomllib
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -196,9 +197,26 @@ def _entry(row: Survey) -> dict[str, Any]:
     }
 
 
-def run_survey(row: Survey, modes: Sequence[str], out: Path, keep: bool = False) -> dict[str, Any]:
+@dataclass(frozen=True)
+class LiveOptions:
+    """How the streaming mode runs in a matrix: without its survey-end pass (its numbers
+    are then the live map's alone, at half the time), and with [live] keys set (to choose
+    their defaults)."""
+
+    without_final_pass: bool = False
+    settings: tuple[tuple[str, Any], ...] = ()
+
+
+def run_survey(
+    row: Survey,
+    modes: Sequence[str],
+    out: Path,
+    keep: bool = False,
+    live: LiveOptions | None = None,
+) -> dict[str, Any]:
     """Simulate one survey and replay it in each mode; its entry in matrix.json. Errors
     are caught: the survey's (or a mode's) ``error`` says what went wrong."""
+    from daemon.config import load_config
     from daemon.replay import replay
     from tools.evaluation.truth import truth_scorer
     from tools.sim.survey import simulate
@@ -221,12 +239,20 @@ def run_survey(row: Survey, modes: Sequence[str], out: Path, keep: bool = False)
     }
     for mode in modes:
         try:
+            config = load_config(sim / "site.toml")
+            if live is not None and mode == "streaming":
+                config = replace(
+                    config,
+                    daemon=replace(config.daemon, final_pass=not live.without_final_pass),
+                    live=replace(config.live, **dict(live.settings)),
+                )
             report = replay(
                 sim / "sonar.oculus",
                 sim / "nav.tlog",
                 sim / "site.toml",
                 mode,
                 folder / mode,
+                config=config,
                 scorer=truth_scorer(sim / "truth.json"),
             )
             entry["modes"][mode] = mode_metrics(report)
@@ -276,10 +302,12 @@ def run_matrix(
     keep: bool = False,
     log: Callable[[str], None] = lambda line: print(line, file=sys.stderr, flush=True),
     resume: bool = False,
+    live: LiveOptions | None = None,
 ) -> dict[str, Any]:
     """Run every survey in every mode (``jobs`` surveys at once, in processes), write
     ``out/matrix.json`` and ``out/matrix.md`` after each survey; returns the matrix.
-    ``resume``: surveys a previous run finished in ``out`` (``ENTRY``) are not rerun."""
+    ``resume``: surveys a previous run finished in ``out`` (``ENTRY``) are not rerun.
+    ``live``: how streaming runs (``LiveOptions``)."""
     from tools.accuracy_report import matrix_document, write_matrix
 
     out.mkdir(parents=True, exist_ok=True)
@@ -310,13 +338,13 @@ def run_matrix(
             finished(row.name, previous)
     if jobs <= 1:
         for row in todo:
-            finished(row.name, run_survey(row, modes, out, keep))
+            finished(row.name, run_survey(row, modes, out, keep, live))
     else:
         # Spawned, not forked: the parent may hold threads (OpenCV's, the reader's).
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(jobs, mp_context=context, initializer=_worker_init) as pool:
             futures: dict[Future[dict[str, Any]], Survey] = {
-                pool.submit(run_survey, row, modes, out, keep): row for row in todo
+                pool.submit(run_survey, row, modes, out, keep, live): row for row in todo
             }
             for future in as_completed(futures):
                 row = futures[future]
@@ -358,12 +386,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--resume", action="store_true", help="do not rerun surveys a previous run finished"
     )
+    parser.add_argument(
+        "--live-only",
+        action="store_true",
+        help="streaming without its survey-end pass (the live map's numbers, in half the time)",
+    )
+    parser.add_argument(
+        "--live",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="[live] keys for the streaming runs (TOML values: registration_res_m=0.03)",
+    )
     args = parser.parse_args(argv)
+    settings = []
+    for item in args.live:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"accuracy: --live {item!r} is not KEY=VALUE")
+        settings.append((key, tomllib.loads(f"v = {value}")["v"]))
+    live = LiveOptions(args.live_only, tuple(settings))
     rows = select(args.quick, args.surveys)
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     log(f"accuracy: {len(rows)} surveys x {len(args.modes)} modes into {args.out}")
     document = run_matrix(
-        rows, args.modes, args.out, max(args.jobs, 1), args.keep, log, resume=args.resume
+        rows, args.modes, args.out, max(args.jobs, 1), args.keep, log, args.resume, live
     )
     failed = sum("error" in s for s in document["surveys"])
     log(

@@ -14,10 +14,13 @@ waited to render, plus the time it took to process).
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import heapq
 import math
 import multiprocessing
 import os
 import queue
+import signal
 import tempfile
 import time
 from collections.abc import Iterator
@@ -25,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from daemon.memory import return_large_blocks
@@ -33,7 +37,7 @@ from drivers.formats.tilespill import DiskSpill
 from drivers.oculus.logfile import iter_pings
 from mapping import kernels
 from mapping.samples import Ping
-from mapping.streaming import StreamingEngine, StreamingParams, TileUpdate
+from mapping.streaming import Sample, StreamingEngine, StreamingParams, TileUpdate
 
 _BATCH = 64
 """Events a message from the simulator's process carries."""
@@ -64,11 +68,8 @@ def _simulate_into(
     as an Oculus log, as the daemon records them (closed before "end")."""
     from drivers.oculus.logfile import OculusLogWriter
     from tools.sim.stream import survey_events
-    from tools.sim.swath import range_resolution_for
 
-    if "range_m" in overrides and "range_resolution_m" not in overrides:
-        # A range set on the sonar brings its range resolution (about range / 600 lines).
-        overrides = {**overrides, "range_resolution_m": range_resolution_for(overrides["range_m"])}
+    overrides = _range_overrides(overrides)
     try:
         with contextlib.ExitStack() as stack:
             log = None if record is None else stack.enter_context(OculusLogWriter(record))
@@ -88,6 +89,95 @@ def _simulate_into(
         _put(out, ("error", str(error)))
     except Exception as error:  # one line to the parent, not a traceback
         _put(out, ("error", f"the simulator failed: {type(error).__name__}: {error}"))
+
+
+def _range_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
+    """A range set on the sonar brings its range resolution (about range / 600 lines)."""
+    from tools.sim.swath import range_resolution_for
+
+    if "range_m" in overrides and "range_resolution_m" not in overrides:
+        return {**overrides, "range_resolution_m": range_resolution_for(overrides["range_m"])}
+    return overrides
+
+
+def _simulate_folder(
+    out: Any, scenario: str, seed: int, overrides: dict[str, Any], folder: Path
+) -> None:
+    """The simulator's process for a recorded feed: the survey's logs written to
+    ``folder``, then ("done", pings) or ("error", one line). It ends with the bench's
+    process, killed or not (Linux: the parent's death signals it)."""
+    from tools.sim.survey import simulate
+
+    _end_with_parent()
+
+    try:
+        summary = simulate(scenario, seed, folder, **_range_overrides(overrides))
+        out.put(("done", summary.ping_count))
+    except SeamapError as error:
+        out.put(("error", str(error)))
+    except Exception as error:  # one line to the parent, not a traceback
+        out.put(("error", f"the simulator failed: {type(error).__name__}: {error}"))
+
+
+def _end_with_parent() -> None:
+    """Have the kernel end this process when its parent dies (Linux ``PR_SET_PDEATHSIG``;
+    elsewhere nothing)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if multiprocessing.parent_process() is not None and os.getppid() == 1:
+        os._exit(0)  # the parent died before the signal was asked for
+
+
+class RecordedFeed:
+    """A simulated survey written to its logs first, in a process of its own, then read
+    back in time order as replay reads them: the simulator has finished before the engine
+    is timed, and does not take the cores its workers use."""
+
+    def __init__(self, scenario: str, seed: int, overrides: dict[str, Any], folder: Path) -> None:
+        from daemon.config import load_config
+        from daemon.replay import read_navigation
+
+        context = multiprocessing.get_context("spawn")
+        answer: Any = context.Queue()
+        process = context.Process(
+            target=_simulate_folder,
+            args=(answer, scenario, seed, overrides, folder),
+            name="seamap-bench-simulator",
+            daemon=True,
+        )
+        process.start()
+        message: tuple[Any, ...] | None = None
+        while message is None:
+            try:
+                message = answer.get(timeout=1.0)
+            except queue.Empty:
+                if not process.is_alive():
+                    raise SeamapError(
+                        f"bench: the simulator's process ended (exit code {process.exitcode}) "
+                        "without finishing its survey"
+                    ) from None
+        process.join(timeout=30.0)
+        if message[0] == "error":
+            raise SeamapError(message[1])
+        self.ping_count: int = message[1]
+        self.site_config = load_config(folder / "site.toml")
+        self.recording = folder / "sonar.oculus"
+        self.nav, _ = read_navigation(folder / "nav.tlog", self.site_config)
+
+    def events(self) -> Iterator[tuple[float, Any]]:
+        nav = self.nav
+        samples: Iterator[Sample] = heapq.merge(
+            nav.imu, nav.gnss, nav.heading, nav.attitude, nav.ranges, iter_pings(self.recording),
+            key=lambda sample: sample.time,
+        )  # fmt: skip
+        for sample in samples:
+            yield sample.time, sample
+
+    def close(self) -> None:
+        pass
 
 
 class SimulatedFeed:
@@ -156,6 +246,28 @@ def reset_peak_rss() -> None:
         pass
 
 
+def pss_mb(pids: list[int]) -> float:
+    """Proportional set size (MB) of these processes together (Linux; NaN elsewhere): the
+    memory they take between them, their shared pages counted once."""
+    total = 0.0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/smaps_rollup", encoding="ascii") as rollup:
+                for line in rollup:
+                    if line.startswith("Pss:"):
+                        total += int(line.split()[1]) / 1024.0
+                        break
+        except OSError:
+            return math.nan
+    return total
+
+
+def _pids(front: Any) -> list[int]:
+    """This process and its front's worker, if it has one."""
+    pid = getattr(front, "pid", None)
+    return [os.getpid()] + ([pid] if pid is not None else [])
+
+
 def rss_mb() -> tuple[float, float]:
     """(current, peak) resident memory of this process in MB, from /proc."""
     current = peak = math.nan
@@ -200,6 +312,20 @@ class BenchResult:
     final_pass_s: float | None = None
     range_m: float = math.nan
     """The sonar's range in the pings (m): a frame's cost depends on it."""
+    workers: int = 0
+    """Worker processes the engine's stages ran in (``daemon.workers``)."""
+    worker_stages: tuple[str, ...] = ()
+    """Stages that ran in a worker: their time is the worker's, beside the engine's."""
+    pss_samples: list[tuple[int, float]] = field(default_factory=list)
+    """(frames so far, PSS in MB of the engine's process and its workers together)."""
+    streamed: bool = False
+    """The simulator ran beside the engine (a survey too long to write out first)."""
+
+    @property
+    def peak_pss_mb(self) -> float:
+        """The largest PSS sampled, over the engine's process and its workers."""
+        values = [v for _, v in self.pss_samples if math.isfinite(v)]
+        return max(values) if values else math.nan
 
     @property
     def fps(self) -> float:
@@ -234,6 +360,11 @@ class BenchResult:
             "final_pass_s": self.final_pass_s,
             "spill_written_mb": self.spill_written_mb,
             "memory_samples": [[frames, rss] for frames, rss in self.memory_samples],
+            "workers": self.workers,
+            "worker_stages": list(self.worker_stages),
+            "peak_pss_mb": self.peak_pss_mb,
+            "pss_samples": [[frames, value] for frames, value in self.pss_samples],
+            "simulator_beside_engine": self.streamed,
         }
 
 
@@ -253,19 +384,30 @@ def run_bench(
     params: StreamingParams | None = None,
     final_pass: bool = False,
     progress: Any = None,
+    workers: int = 0,
 ) -> BenchResult:
-    from daemon.replay import mount_from_config, pipeline_params
+    """``workers``: worker processes for the engine's stages (``daemon.workers``)."""
+    from daemon.replay import mount_from_config, pipeline_params, streaming_params
+    from daemon.workers import live_front
+    from tools.sim.scenarios import STREAM_ONLY
 
     if max_pings is not None:
         overrides = {**overrides, "max_pings": max_pings}
     # Tiles the boat leaves go to disk, as on the boat; with the survey-end pass, the pings
     # are recorded there too, and the pass reads the recording, as the daemon's does.
     spill_dir = tempfile.TemporaryDirectory(prefix="seamap-bench-")
-    recording = Path(spill_dir.name) / "sonar.oculus" if final_pass else None
-    stream = SimulatedFeed(scenario, seed, overrides, recording)
+    stream: RecordedFeed | SimulatedFeed
+    streamed = scenario in STREAM_ONLY and max_pings is None and "duration_s" not in overrides
+    if streamed:
+        # Too long to write out first (tens of GB): the simulator runs beside the engine.
+        recording = Path(spill_dir.name) / "sonar.oculus" if final_pass else None
+        stream = SimulatedFeed(scenario, seed, overrides, recording)
+    else:
+        stream = RecordedFeed(scenario, seed, overrides, Path(spill_dir.name) / "survey")
+        recording = stream.recording
     config = stream.site_config
-    params = params or StreamingParams(
-        pipeline=pipeline_params(config), tile_memory_mb=config.daemon.tile_memory_mb
+    params = params or streaming_params(
+        pipeline_params(config), config.live, config.daemon.tile_memory_mb
     )
     ping_time: list[float] = []
     latencies: list[float] = []
@@ -280,17 +422,21 @@ def run_bench(
             # A frame's first appearance counts; later ones are re-blends.
             if frame < len(ping_time) and frame not in seen:
                 seen.add(frame)
-                latencies.append(max(released - ping_time[frame], 0.0) + processing[frame])
+                waited = max(released - ping_time[frame], 0.0)  # survey time held
+                latencies.append(waited + time.perf_counter() - engine.sent_at[frame])
 
-    processing: list[float] = []
     seen: set[int] = set()
     spill = DiskSpill(Path(spill_dir.name) / "live")
-    engine = StreamingEngine(mount_from_config(config.sonar), params, on_tile=on_tile, spill=spill)
+    mount = mount_from_config(config.sonar)
+    threads = cv2.getNumThreads()
+    front = live_front(mount, params, workers, log=print, threads=threads)
+    engine = StreamingEngine(mount, params, on_tile=on_tile, spill=spill, front=front)
     return_large_blocks()  # as the daemon does at start
     kernels.warm()  # as the daemon does at start: the compile is not a frame's time
     reset_peak_rss()
     rss_start, _ = rss_mb()
     memory: list[tuple[int, float]] = []
+    pss: list[tuple[int, float]] = []
     engine_s = 0.0
     stall = 0.0
     frames = 0
@@ -305,9 +451,9 @@ def run_bench(
             frames += 1
             range_m = sample.max_range_m
             ping_time.append(sample.time)
-            processing.append(spent)
             if frames % 200 == 0:
                 memory.append((frames, rss_mb()[0]))
+                pss.append((frames, pss_mb(_pids(front))))
                 if progress is not None:
                     progress("bench", frames, stream.ping_count)
     started = time.perf_counter()
@@ -316,6 +462,7 @@ def run_bench(
     engine_s += flush_s
     rss_end, peak = rss_mb()
     memory.append((frames, rss_end))
+    pss.append((frames, pss_mb(_pids(front))))
     growth = math.nan
     half = [m for m in memory if m[0] >= frames / 2]
     if len(half) >= 3:
@@ -324,6 +471,8 @@ def run_bench(
         growth = float(np.polyfit(x, y, 1)[0] * 1000.0)
     stats = engine.stats
     stages = {k: 1000.0 * v / max(frames, 1) for k, v in sorted(stats.stage_s.items())}
+    if front is not None:
+        stages["front wait"] = 1000.0 * stats.front_wait_s / max(frames, 1)
     final_s: float | None = None
     if final_pass:
 
@@ -359,6 +508,10 @@ def run_bench(
         spill_written_mb=spill_written,
         final_pass_s=final_s,
         range_m=range_m,
+        workers=workers if front is not None else 0,
+        worker_stages=("preprocess", "registration") if front is not None else (),
+        pss_samples=pss,
+        streamed=streamed,
     )
 
 
@@ -379,7 +532,8 @@ def format_table(result: BenchResult) -> str:
         f"  {'stage':<14}{'ms/frame':>10}",
     ]
     for stage, ms in result.stages_ms.items():
-        lines.append(f"  {stage:<14}{ms:>10.2f}")
+        where = "   (in a worker, beside the rest)" if stage in result.worker_stages else ""
+        lines.append(f"  {stage:<14}{ms:>10.2f}{where}")
     lines += [
         f"  {'total':<14}{j['ms_per_frame']:>10.2f}",
         f"  {'  pinging':<14}{j['ms_per_frame_pinging']:>10.2f}   (the end of the stream "
@@ -392,6 +546,8 @@ def format_table(result: BenchResult) -> str:
         f"  memory start / end / peak {j['rss_start_mb']:.0f} / {j['rss_end_mb']:.0f} / "
         f"{j['peak_rss_mb']:.0f} MB",
         f"  memory growth            {_growth(j['rss_growth_mb_per_1000_frames'])}",
+        f"  workers                  {result.workers} (peak PSS with them "
+        f"{j['peak_pss_mb'] or math.nan:.0f} MB)",
         f"  tiles published          {j['tiles_published']}",
         f"  tile spill written       {j['spill_written_mb']:.0f} MB",
     ]

@@ -87,6 +87,16 @@ def register(subparsers: Any) -> None:
             "covered fraction in the report and what was missed in gaps.geojson"
         ),
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help=(
+            "worker processes for the live engine's stages (streaming; default: [daemon] "
+            "workers, the cores less one; 0: all in this process); the map is the same"
+        ),
+    )
     parser.set_defaults(handler=run)
 
 
@@ -145,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
                     raise SeamapError(f"{path}: no such {label}")
                 if path.is_dir():
                     raise SeamapError(f"{path}: is a directory, not a {label}")
+    if args.workers is not None and args.workers < 0:
+        raise SeamapError(f"--workers must be 0 or more, got {args.workers}")
     scorer = truth_scorer(args.truth) if args.truth is not None else None
     progress = Progress()
     try:
@@ -157,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
                 scorer=scorer,
                 progress=progress,
                 area=args.area,
+                workers=args.workers,
             )
         else:
             report = replay(
@@ -168,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
                 scorer=scorer,
                 progress=progress,
                 area=args.area,
+                workers=args.workers,
             )
     finally:
         progress.done()

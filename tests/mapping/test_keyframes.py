@@ -49,7 +49,9 @@ class _Registrar:
     def prepare(self, coarse: Array, mask: None = None) -> Array:
         return coarse
 
-    def register(self, a: Array, b: Array, expected: Any, prior_sigma_m: float) -> Registration:
+    def register(
+        self, a: Array, b: Array, expected: Any, prior_sigma_m: float, yaw_known: bool = False
+    ) -> Registration:
         rel = relative_pose(a, b)
         span = math.hypot(rel.forward_m, rel.starboard_m)
         self.spans.append(span)

@@ -20,6 +20,7 @@ from mapping.posegraph import Edge
 from mapping.samples import Ping
 from mapping.se2 import relative_pose
 from mapping.stream_chain import LiveChain, Motion, compass_error, measure_step
+from mapping.stream_front import Front, FrontJob
 from mapping.stream_navigation import NavigationRecord
 from mapping.stream_window import Resolution
 from mapping.streaming import StreamingParams
@@ -87,6 +88,8 @@ class Chained:
     chain: LiveChain
     frames: list[tuple[int, Array, Bridge | None, Edge | None]]
     times: list[float]
+    front: Front
+    poses: list[Array]
 
     def truth(self, k: int) -> Array:
         """Frame ``k``'s true pose in the local frame."""
@@ -105,7 +108,8 @@ def _chain(survey: Survey, unregistered: range = range(0)) -> Chained:
     record = NavigationRecord(mount, params.pipeline, params.gnss_time_offset_s)
     times: list[float] = []
     poses: list[Array] = []
-    chain = LiveChain(mount, params, lambda t: record.ping_attitude(t, times, poses))
+    chain = LiveChain(mount, params)
+    front = Front(mount, params)
     frames = []
     for sample in survey.samples:
         if not isinstance(sample, Ping):
@@ -115,8 +119,10 @@ def _chain(survey: Survey, unregistered: range = range(0)) -> Chained:
             continue
         k = len(times)
         at = record.at_ping(sample)
-        image = chain.preprocess(sample)
-        outcome = chain.register(k, sample.time, image, at)
+        attitude = record.ping_attitude(sample.time, times, poses)
+        result = front.run(FrontJob(k, sample, at, attitude))
+        chain.take_front(result)
+        image, outcome = result.frame, result.outcome
         times.append(sample.time)
         if not outcome.accepted:
             poses.append(np.full(3, np.nan))
@@ -126,7 +132,7 @@ def _chain(survey: Survey, unregistered: range = range(0)) -> Chained:
         chain.close_loop(k, sample.time, image.image)
         poses.append(chain.live_pose(k))
         frames.append((k, poses[-1], bridge, edge))
-    return Chained(survey, record, chain, frames, times)
+    return Chained(survey, record, chain, frames, times, front, poses)
 
 
 @functools.cache
@@ -296,6 +302,7 @@ def _continue(run: Chained, survey: Survey) -> int:
     """Feed the rest of ``survey`` (after what ``run`` had) through its record and chain;
     returns the frames chained."""
     record, chain, times = run.record, run.chain, run.times
+    front, poses = run.front, run.poses
     chained = 0
     for sample in survey.samples[len(run.survey.samples) :]:
         if not isinstance(sample, Ping):
@@ -305,8 +312,10 @@ def _continue(run: Chained, survey: Survey) -> int:
             continue
         k = len(times)
         at = record.at_ping(sample)
-        image = chain.preprocess(sample)
-        outcome = chain.register(k, sample.time, image, at)
+        attitude = record.ping_attitude(sample.time, times, poses)
+        result = front.run(FrontJob(k, sample, at, attitude))
+        chain.take_front(result)
+        outcome = result.outcome
         times.append(sample.time)
         if outcome.accepted:
             chain.link(k, sample.time, at, outcome.edge)

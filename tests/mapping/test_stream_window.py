@@ -19,6 +19,7 @@ from mapping.samples import Ping
 from mapping.se2 import RelativePose
 from mapping.stream_chain import LiveChain
 from mapping.stream_drawing import LiveImage, fan_moved
+from mapping.stream_front import Front, FrontJob
 from mapping.stream_navigation import NavigationRecord
 from mapping.stream_window import LiveWindow
 from mapping.streaming import StreamingParams
@@ -116,7 +117,8 @@ def _feed(*params: StreamingParams) -> Fed:
     record = NavigationRecord(mount, first.pipeline, first.gnss_time_offset_s)
     times: list[float] = []
     poses: list[Array] = []
-    chain = LiveChain(mount, first, lambda t: record.ping_attitude(t, times, poses))
+    chain = LiveChain(mount, first)
+    front = Front(mount, first)
     windows = [LiveWindow(mount, replace(p, pipeline=first.pipeline)) for p in params]
     images, infos = {}, {}
     graph = first.pipeline.single_stage.graph
@@ -133,8 +135,10 @@ def _feed(*params: StreamingParams) -> Fed:
             continue
         k = len(times)
         at = record.at_ping(sample)
-        frame = chain.preprocess(sample)
-        outcome = chain.register(k, sample.time, frame, at)
+        attitude = record.ping_attitude(sample.time, times, poses)
+        result = front.run(FrontJob(k, sample, at, attitude))
+        chain.take_front(result)
+        frame, outcome = result.frame, result.outcome
         times.append(sample.time)
         if not outcome.accepted:
             poses.append(np.full(3, np.nan))

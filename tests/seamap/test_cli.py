@@ -211,7 +211,7 @@ def test_the_bench_simulator_leaves_when_the_bench_is_killed() -> None:
         while not (children := _children(bench.pid)):
             assert time.monotonic() < deadline and bench.poll() is None, "no simulator process"
             time.sleep(0.2)
-        time.sleep(5.0)  # the simulator runs ahead until its queue is full
+        time.sleep(5.0)  # the simulator is writing the survey's logs
     finally:
         bench.kill()
         bench.wait(30)

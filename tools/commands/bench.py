@@ -36,6 +36,13 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
     parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="worker processes for the engine's stages (default 0: all in this process)",
+    )
+    parser.add_argument(
         "--final",
         action="store_true",
         help="also time the survey-end pass (the pings are recorded as the daemon records "
@@ -51,6 +58,8 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
+    if args.workers < 0:
+        raise SeamapError(f"--workers must be 0 or more, got {args.workers}")
     if args.pings is not None and args.pings < 1:
         raise SeamapError(f"--pings must be at least 1, got {args.pings}")
     if args.plot is not None and not args.plot.parent.is_dir():
@@ -80,7 +89,13 @@ def _bench(args: argparse.Namespace) -> int:
             sys.stderr.flush()
 
     result = run_bench(
-        args.scenario, args.seed, args.pings, overrides, final_pass=args.final, progress=progress
+        args.scenario,
+        args.seed,
+        args.pings,
+        overrides,
+        final_pass=args.final,
+        progress=progress,
+        workers=args.workers,
     )
     if sys.stderr.isatty():
         sys.stderr.write("\r" + " " * 50 + "\r")

@@ -1,0 +1,182 @@
+"""The streaming engine's front stage: each ping preprocessed and registered, in order.
+
+The front is the engine's first two stages, preprocessing (its flat field and histogram
+reference follow the pings) and local registration (the keyframe and the chain's rate
+follow the accepted frames), one stateful ``mapping.frames.LocalRegistration`` fed in
+ping order. Everything it needs of a ping comes with the ping (``FrontJob``: the
+filter's pose there and the attitude and seabed to project it with), and everything the
+later stages need comes back with its result (``FrontResult``: the blending frame, the
+registration's outcome, the chain's rate, and the fan's shape when it changed), so that
+the front can run where the rest is not: in the engine's own process (``InlineFront``),
+or in a worker process of its own (``daemon.workers``) while the engine chains, draws
+and re-solves the frames before it. Its results are taken in submission order, never
+in order of arrival, so the map is the same wherever it runs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
+from mapping.grid import SonarGrid
+from mapping.polar import Attitude
+from mapping.preprocess import Preprocessor, SonarFrame
+from mapping.samples import Ping
+from mapping.stream_navigation import PingNavigation
+
+if TYPE_CHECKING:
+    from mapping.stream_params import StreamingParams
+
+ChainRate = tuple[tuple[float, float, float], float, float]
+"""The chain's velocity and turn rate (forward, starboard m/s, yaw rad/s), the time of the
+last registered step it was measured with, and the span it covers
+(``LocalRegistration.rate``)."""
+
+_NO_COARSE = np.zeros((0, 0), np.float32)
+
+
+@dataclass(frozen=True, slots=True)
+class FrontJob:
+    """One ping and what preprocessing and registering it need of the navigation."""
+
+    index: int
+    ping: Ping
+    at: PingNavigation
+    attitude: Attitude | None
+    """Roll, pitch and seabed the ping is projected with (``NavigationRecord.ping_attitude``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class FanShape:
+    """What the later stages need of the preprocessor's geometry: the blending grid and its
+    fixed fan mask (loop closures register there), the lit band and the fan's half width."""
+
+    grid: SonarGrid
+    mask: npt.NDArray[np.bool_]
+    min_range_m: float
+    max_range_m: float
+    half_width_rad: float
+
+
+@dataclass(slots=True)
+class FrontResult:
+    """A ping preprocessed and registered: its frame on the blending grid (the registration
+    grid's copy is left behind), the outcome, the chain's rate after it, and the fan's
+    shape when this ping's differs from the previous result's (else None)."""
+
+    index: int
+    frame: SonarFrame
+    outcome: FrameOutcome
+    rate: ChainRate | None
+    shape: FanShape | None
+    seconds: dict[str, float]
+    """Time the front spent on it, per stage (``preprocess``, ``registration``)."""
+
+
+def rate_at(
+    rate: ChainRate | None, time: float, max_age_s: float
+) -> tuple[float, float, float] | None:
+    """The chain's velocity and turn rate when measured at most ``max_age_s`` before
+    ``time`` (``LocalRegistration.chain_rate`` of a snapshot)."""
+    if rate is None or time - rate[1] > max_age_s:
+        return None
+    return rate[0]
+
+
+def fan_shape(preprocessor: Preprocessor) -> FanShape:
+    grid = preprocessor.grid
+    assert grid is not None
+    bearings = preprocessor.fan.bearings_rad
+    return FanShape(
+        grid,
+        preprocessor.tables.mask,
+        preprocessor.min_range_m,
+        preprocessor.fan.max_range_m,
+        max(abs(float(bearings[0])), abs(float(bearings[-1]))),
+    )
+
+
+class Front:
+    """The front stage itself (see the module docstring): feed it jobs in ping order."""
+
+    def __init__(self, mount: SonarMount, params: StreamingParams) -> None:
+        p = params.pipeline
+        preprocess = p.preprocess
+        if params.live_registration_res_m is not None:
+            preprocess = replace(preprocess, registration_res_m=params.live_registration_res_m)
+        self._attitude: Attitude | None = None
+        self.local = LocalRegistration(
+            mount,
+            preprocess,
+            p.fmt,
+            p.registration,
+            lambda _stamp: self._attitude,
+            params.live_yaw_from_gyro,
+        )
+        self._shape_of: Preprocessor | None = None
+
+    def run(self, job: FrontJob) -> FrontResult:
+        started = time.perf_counter()
+        self._attitude = job.attitude
+        frame = self.local.frame(job.ping)
+        preprocessed = time.perf_counter()
+        at = job.at
+        outcome = self.local.register(
+            job.index, job.ping.time, frame, at.prior, at.odometry, at.gyro
+        )
+        registered = time.perf_counter()
+        preprocessor = self.local.preprocessor
+        shape = None
+        if preprocessor is not None and preprocessor is not self._shape_of:
+            shape = fan_shape(preprocessor)
+            self._shape_of = preprocessor
+        return FrontResult(
+            job.index,
+            replace(frame, coarse=_NO_COARSE, coarse_mask=None),
+            outcome,
+            self.local.rate,
+            shape,
+            {"preprocess": preprocessed - started, "registration": registered - preprocessed},
+        )
+
+
+class FrontStage(Protocol):
+    """Where the front runs: jobs in, results out in the same order."""
+
+    def submit(self, job: FrontJob) -> None:
+        """Hand over the next ping's job."""
+
+    def ready(self) -> bool:
+        """The next result can be taken without waiting."""
+
+    def result(self) -> FrontResult:
+        """The next result in submission order (waits for it)."""
+
+    def close(self) -> None:
+        """No more jobs: let go of what runs them."""
+
+
+class InlineFront:
+    """The front in the engine's own process: each job run as it is submitted."""
+
+    def __init__(self, front: Front) -> None:
+        self.front = front
+        self._results: deque[FrontResult] = deque()
+
+    def submit(self, job: FrontJob) -> None:
+        self._results.append(self.front.run(job))
+
+    def ready(self) -> bool:
+        return bool(self._results)
+
+    def result(self) -> FrontResult:
+        return self._results.popleft()
+
+    def close(self) -> None:
+        self._results.clear()

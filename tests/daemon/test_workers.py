@@ -1,0 +1,109 @@
+"""The live engine's stages in worker processes (``daemon.workers``): the same map, to the
+bit, wherever the front runs, and a worker killed mid-survey is replaced."""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from daemon.config import SiteConfig
+from daemon.replay import mount_from_config, pipeline_params, streaming_params
+from daemon.workers import ProcessFront, live_front
+from mapping.samples import Ping
+from mapping.streaming import PoseUpdate, StreamingEngine, TileUpdate
+from tools.sim.stream import survey_events
+
+
+@dataclass(frozen=True)
+class Survey:
+    samples: list[Any]
+    config: SiteConfig
+
+
+@dataclass
+class Run:
+    engine: StreamingEngine
+    poses: list[PoseUpdate]
+    tiles: list[tuple[Any, int, bytes]]
+
+
+def _survey(scenario: str, seed: int, pings: int) -> Survey:
+    simulated = survey_events(scenario, seed, max_pings=pings, n_beams=128)
+    return Survey([s for _, s in simulated.events], simulated.site_config)
+
+
+@pytest.fixture(scope="module")
+def quadrats() -> Survey:
+    return _survey("quadrats", 4, 300)
+
+
+@pytest.fixture(scope="module")
+def shore() -> Survey:
+    """A sloping shore with an echosounder: each ping's seabed comes from the soundings
+    placed by the live poses, the one thing the front is given from the later stages."""
+    return _survey("shore", 1, 300)
+
+
+def _run(survey: Survey, workers: int, kill_at: int | None = None) -> Run:
+    mount = mount_from_config(survey.config.sonar)
+    params = streaming_params(pipeline_params(survey.config), survey.config.live)
+    said: list[str] = []
+    front = live_front(mount, params, workers, log=said.append)
+    poses: list[PoseUpdate] = []
+    tiles: list[tuple[Any, int, bytes]] = []
+
+    def on_tile(update: TileUpdate) -> None:
+        tiles.append((update.key, update.version, update.values.tobytes()))
+
+    engine = StreamingEngine(mount, params, on_pose=poses.append, on_tile=on_tile, front=front)
+    pings = 0
+    try:
+        for sample in survey.samples:
+            engine.add(sample)
+            if isinstance(sample, Ping):
+                pings += 1
+                if pings == kill_at:
+                    assert isinstance(front, ProcessFront) and front.pid is not None
+                    os.kill(front.pid, signal.SIGKILL)
+        engine.flush()
+    finally:
+        engine.close()
+    if kill_at is not None:
+        assert isinstance(front, ProcessFront)
+        assert front.restarts == 1
+        assert len(said) == 1 and "restarted" in said[0], said
+    else:
+        assert not said
+    return Run(engine, poses, tiles)
+
+
+@pytest.mark.parametrize("name", ["quadrats", "shore"])
+def test_the_live_map_is_the_same_to_the_bit_with_the_front_in_a_worker(
+    name: str, request: pytest.FixtureRequest
+) -> None:
+    survey: Survey = request.getfixturevalue(name)
+    inline = _run(survey, workers=0)
+    worker = _run(survey, workers=1)
+    assert isinstance(inline.engine.front, type(inline.engine.front))
+    assert inline.engine.stats.frames_mapped > 250
+    assert inline.engine.stats.resolves >= 1  # the re-solve and its redraws are in it
+    # Every pose update, every tile published, in the same order, to the bit.
+    assert worker.poses == inline.poses
+    assert worker.tiles == inline.tiles
+    np.testing.assert_array_equal(np.array(worker.engine.poses), np.array(inline.engine.poses))
+
+
+def test_a_front_worker_killed_mid_survey_is_replaced_and_the_survey_goes_on(
+    quadrats: Survey,
+) -> None:
+    killed = _run(quadrats, workers=1, kill_at=120)
+    stats = killed.engine.stats
+    assert stats.frames_received == sum(isinstance(s, Ping) for s in quadrats.samples)
+    # The frames the dead worker held are registered by the new one: none is lost.
+    assert stats.frames_mapped >= stats.frames_received - 2
+    assert all(np.all(np.isfinite(p)) for p in killed.engine.poses[-100:])
