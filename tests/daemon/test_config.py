@@ -93,6 +93,10 @@ def test_unknown_table_is_an_error_naming_it(tmp_path: Path) -> None:
         # The shore and the security sets refuse a space in an id: so does the config.
         ('[daemon]\nvehicle = "boat 1"\n', r"vehicle = 'boat 1' is not a vehicle id"),
         ("[mapping]\nmosaic_res_m = -0.02\n", r"\[mapping\] mosaic_res_m = -0.02 is outside"),
+        ("[daemon]\nworkers = -2\n", r"\[daemon\] workers = -2 is outside -1\.\.256"),
+        ("[live]\ncandidates = 0\n", r"\[live\] candidates = 0 is outside 1\.\.64"),
+        ("[live]\nregistration_res_m = 0\n", r"\[live\] registration_res_m = 0 is outside"),
+        ("[live]\nyaw_from_gyro = 1\n", r"\[live\] yaw_from_gyro must be true or false"),
         (
             '[sonar]\naddress = "sonar.local"\n',
             r"address = 'sonar.local' must be \"auto\" or an IPv4",
@@ -295,3 +299,25 @@ def test_any_values_are_a_config_or_one_seamap_error(table: str, values: dict[st
         config_from_dict({table: values})
     except SeamapError as error:
         assert "\n" not in str(error)
+
+
+def test_the_live_keys_reach_the_live_engine_and_leave_the_survey_end_pass_alone(
+    tmp_path: Path,
+) -> None:
+    from daemon.replay import pipeline_params, streaming_params
+
+    text = (
+        "[live]\nregistration_res_m = 0.05\nyaw_from_gyro = false\ncandidates = 12\n"
+        "redraws_per_frame = 0.25\n"
+    )
+    config = load_config(write(tmp_path, text))
+    pipeline = pipeline_params(config)
+    live = streaming_params(pipeline, config.live)
+    assert live.live_registration_res_m == 0.05
+    assert live.live_yaw_from_gyro is False
+    assert live.live_candidates == 12
+    assert live.resolve.redraws_per_frame == 0.25
+    # The survey-end pass registers and blends with the pipeline's own settings.
+    assert live.pipeline == pipeline
+    assert pipeline.blend.top_n == 16
+    assert pipeline.preprocess.registration_res_m != 0.05
