@@ -34,7 +34,7 @@ from daemon.config import (
 from daemon.coverage import AreaSource, write_coverage
 from daemon.memory import return_large_blocks
 from daemon.recording import segments
-from daemon.workers import live_front
+from daemon.workers import live_front, task_pool
 from drivers.errors import SeamapError
 from drivers.formats.area import read_area
 from drivers.formats.results import write_geotiff, write_png, write_report, write_trajectory
@@ -50,6 +50,7 @@ from mapping.preprocess import lit_min_range
 from mapping.samples import Ping
 from mapping.single_stage import SingleStageParams
 from mapping.streaming import Sample, StreamingEngine, StreamingParams, StreamStats
+from mapping.tasks import TaskPool
 from mapping.tiles import TileSpill
 
 LogPaths = Path | Sequence[Path]
@@ -246,17 +247,19 @@ def stream_survey(
     final_pass: bool = True,
     live: LiveConfig | None = None,
     workers: int = 0,
+    pool: TaskPool | None = None,
 ) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     """The streaming engine fed with the logs in arrival order (as the daemon would be),
     then its survey-end pass. Returns the final result and the live one (the live poses
     and tiles as they stood before the survey-end pass) with the engine's statistics;
     without ``final_pass`` (``[daemon] final_pass = false``), the live one twice.
-    ``workers``: worker processes for the live engine's stages (``daemon.workers``)."""
+    ``workers``: worker processes for the live engine's stages (``daemon.workers``);
+    ``pool``: where the survey-end pass's tasks run (``mapping.tasks``)."""
     streaming = streaming_params(params, live or LiveConfig(), tile_memory_mb)
     front = live_front(mount, streaming, workers, log=_say)
     engine = StreamingEngine(mount, streaming, spill=spill, front=front)
     try:
-        return _stream(engine, pings, nav, progress, final_spill, final_pass)
+        return _stream(engine, pings, nav, progress, final_spill, final_pass, pool)
     finally:
         engine.close()
 
@@ -272,6 +275,7 @@ def _stream(
     progress: Callable[[str, int, int], None] | None,
     final_spill: TileSpill | None,
     final_pass: bool,
+    pool: TaskPool | None,
 ) -> tuple[SurveyResult, tuple[SurveyResult, StreamStats]]:
     arrivals: Iterator[Sample] = heapq.merge(
         nav.imu, nav.gnss, nav.heading, nav.attitude, nav.ranges, pings(),
@@ -285,7 +289,7 @@ def _stream(
     if not final_pass:
         live_only = engine.live_result()
         return live_only, (live_only, engine.stats)
-    final = engine.finish(pings, progress, final_spill)
+    final = engine.finish(pings, progress, final_spill, pool)
     poses = np.array(engine.poses) if engine.poses else np.zeros((0, 3))
     live_map = replace(
         final,
@@ -343,22 +347,27 @@ def replay(
     # Tiles the boat has left wait on disk, so a long survey fits in memory.
     spill_dir = tempfile.TemporaryDirectory(prefix="seamap-tiles-")
     spill_root = Path(spill_dir.name)
+    workers = config.daemon.workers if workers is None else workers
+    pool = task_pool(workers, log=_say)
     try:
         if mode == "streaming":
             result, live = stream_survey(
                 pings, samples, mount, params, progress,
                 DiskSpill(spill_root / "live"), DiskSpill(spill_root / "final"),
                 config.daemon.tile_memory_mb, config.daemon.final_pass, config.live,
-                config.daemon.workers if workers is None else workers,
+                workers, pool,
             )  # fmt: skip
         else:
             result = map_survey(
                 pings, samples, mount, params, Mode(mode), progress,
-                spill=DiskSpill(spill_root / "tiles"),
+                spill=DiskSpill(spill_root / "tiles"), pool=pool,
             )  # fmt: skip
     except ValueError as exc:
         spill_dir.cleanup()
         raise SeamapError(f"{nav_names}: {exc}") from None
+    finally:
+        if pool is not None:
+            pool.close()
     if result.frames_read == 0:
         raise SeamapError(f"{sonar_names}: no sonar pings in the log")
     if result.frames_mapped == 0:

@@ -20,15 +20,31 @@ import queue
 import signal
 import threading
 from collections import deque
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
 
 from mapping.frames import SonarMount
 from mapping.stream_front import Front, FrontJob, FrontResult
 from mapping.stream_params import StreamingParams
 
+J = TypeVar("J")
+R = TypeVar("R")
+
 POLL_S = 0.5
 """How often a wait for a result checks that the worker is alive."""
+
+
+def _threads(threads: int | None) -> int:
+    """OpenCV's thread count for a worker: as asked, else this process's own. Its sums'
+    last bits depend on it, so a worker counts as its parent does for the map to be the
+    same with and without workers."""
+    if threads is not None:
+        return threads
+    import cv2
+
+    return int(cv2.getNumThreads())
 
 
 def default_workers() -> int:
@@ -89,12 +105,12 @@ class ProcessFront:
         mount: SonarMount,
         params: StreamingParams,
         log: Callable[[str], None] | None = None,
-        threads: int = 1,
+        threads: int | None = None,
     ) -> None:
         self.mount = mount
         self.params = params
         self.log = log or (lambda _line: None)
-        self.threads = threads
+        self.threads = _threads(threads)
         self.restarts = 0
         self._context = multiprocessing.get_context("spawn")
         self._waiting: deque[FrontJob] = deque()
@@ -206,7 +222,7 @@ def live_front(
     params: StreamingParams,
     workers: int,
     log: Callable[[str], None] | None = None,
-    threads: int = 1,
+    threads: int | None = None,
 ) -> ProcessFront | None:
     """Where the live engine's front runs with ``workers`` worker processes (``[daemon]
     workers``; -1: ``default_workers``): in a worker from one on, else (None) in the
@@ -214,3 +230,87 @@ def live_front(
     if workers < 0:
         workers = default_workers()
     return ProcessFront(mount, params, log, threads) if workers >= 1 else None
+
+
+def _pool_worker_init(threads: int) -> None:
+    import cv2
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    cv2.setNumThreads(threads)
+
+
+class ProcessPool:
+    """Pure tasks (``mapping.tasks``) in ``workers`` worker processes, at most ``ahead``
+    jobs out at once, the results in the jobs' order. A worker that dies is one line in
+    the log and a new pool; the jobs it had out are run again (a pure task's answer is
+    the same), so nothing is lost and nothing changes."""
+
+    def __init__(
+        self,
+        workers: int,
+        log: Callable[[str], None] | None = None,
+        threads: int | None = None,
+        ahead: int | None = None,
+    ) -> None:
+        self.workers = max(workers, 1)
+        self.log = log or (lambda _line: None)
+        self.threads = _threads(threads)
+        self.ahead = ahead if ahead is not None else 2 * self.workers
+        self.restarts = 0
+        self._executor = self._start()
+
+    def _start(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(
+            self.workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_pool_worker_init,
+            initargs=(self.threads,),
+        )
+
+    def run(self, task: Callable[[J], R], jobs: Iterable[J]) -> Iterator[R]:
+        out: deque[tuple[J, Future[R]]] = deque()
+        remaining = iter(jobs)
+        exhausted = False
+        while True:
+            while not exhausted and len(out) < self.ahead:
+                try:
+                    job = next(remaining)
+                except StopIteration:
+                    exhausted = True
+                    break
+                out.append((job, self._executor.submit(task, job)))
+            if not out:
+                return
+            job, future = out[0]
+            try:
+                result = future.result()
+            except BrokenProcessPool:
+                self.restarts += 1
+                self.log(
+                    f"a mapping worker died with {len(out)} tasks out: the pool is "
+                    "started again and they run again"
+                )
+                self._executor.shutdown(wait=False, cancel_futures=True)
+                self._executor = self._start()
+                out = deque((j, self._executor.submit(task, j)) for j, _ in out)
+                continue
+            out.popleft()
+            yield result
+
+    def pids(self) -> list[int]:
+        """The worker processes' ids (for memory accounting)."""
+        processes = getattr(self._executor, "_processes", None) or {}
+        return [int(pid) for pid in processes]
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+
+def task_pool(
+    workers: int, log: Callable[[str], None] | None = None, threads: int | None = None
+) -> ProcessPool | None:
+    """The survey-end pass's pool with ``workers`` worker processes (-1: ``default_workers``;
+    None for none: its tasks then run in the pass's own process)."""
+    if workers < 0:
+        workers = default_workers()
+    return ProcessPool(workers, log, threads) if workers >= 1 else None

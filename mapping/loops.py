@@ -15,7 +15,7 @@ becomes a closure is ``mapping.closures``'s choice.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,10 +23,13 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
+from mapping.fmt import FmtParams, FmtRegistrar
 from mapping.frames import LocalRegistration, SonarMount
+from mapping.grid import SonarGrid
 from mapping.overlap import OverlapRefiner
 from mapping.samples import Ping
-from mapping.se2 import relative_pose
+from mapping.se2 import RelativePose, relative_pose
+from mapping.tasks import InlinePool, TaskPool
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -197,19 +200,92 @@ def find_candidates(
     return thinned
 
 
-def register_hypotheses(
+@dataclass(frozen=True, slots=True)
+class ClosureJob:
+    """One candidate pair to register: frame ``j``'s blending image against frame ``i``'s
+    (with the masks where each has data), the prior (sonar ``j`` in sonar ``i``), and the
+    grid and fan the registrar works on (``LocalRegistration.fine_registrar``)."""
+
+    i: int
+    j: int
+    earlier: npt.NDArray[np.float32]
+    earlier_mask: npt.NDArray[np.bool_] | None
+    later: npt.NDArray[np.float32]
+    later_mask: npt.NDArray[np.bool_] | None
+    prior: RelativePose
+    grid: SonarGrid
+    fan: npt.NDArray[np.bool_]
+    fmt: FmtParams
+    params: LoopParams
+    mount: SonarMount
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureFound:
+    """A pair registered: its hypotheses that passed ``min_score`` (vehicle frame), and
+    how many of them the overlap refined."""
+
+    i: int
+    j: int
+    hypotheses: list[ClosureHypothesis]
+    refined: int
+
+
+_REGISTRARS: dict[tuple[SonarGrid, FmtParams, bytes], tuple[FmtRegistrar, OverlapRefiner]] = {}
+"""Registrars (and refiners) a process has built, by grid, settings and fan: a survey's
+pairs share one."""
+
+
+def _registrar(job: ClosureJob) -> tuple[FmtRegistrar, OverlapRefiner]:
+    key = (job.grid, job.fmt, job.fan.tobytes())
+    made = _REGISTRARS.get(key)
+    if made is None:
+        _REGISTRARS.clear()  # a new geometry: the old one's are not asked for again
+        made = (FmtRegistrar(job.grid, job.fan, job.fmt), OverlapRefiner(job.grid, job.fan))
+        _REGISTRARS[key] = made
+    return made
+
+
+def register_pair(job: ClosureJob) -> ClosureFound:
+    """Register one candidate pair (a pure task: its answer depends on the job alone),
+    keeping up to ``hypotheses`` distinct peaks whose similarity passes ``min_score``."""
+    params, mount = job.params, job.mount
+    registrar, refiner = _registrar(job)
+    reg = registrar.register_far(
+        registrar.prepare(job.earlier, job.earlier_mask),
+        job.later,
+        job.prior,
+        prior_sigma_m=params.search_m,
+        n_hypotheses=params.hypotheses,
+        later_mask=job.later_mask,
+    )
+    found: list[ClosureHypothesis] = []
+    refined = 0
+    for hyp in reg.hypotheses or (reg,):
+        if hyp.score < params.min_score:
+            continue
+        relative = hyp.relative
+        if params.refine:
+            better = refiner.refine(job.earlier, job.later, relative)
+            if better is not None:
+                relative = better
+                refined += 1
+        vehicle = mount.vehicle_relative(relative)
+        cov = _closure_cov(hyp.covariance, mount, params)
+        found.append(ClosureHypothesis(vehicle, cov, float(hyp.score)))
+    return ClosureFound(job.i, job.j, found, refined)
+
+
+def closure_jobs(
     pings: Iterable[Ping],
     pairs: Sequence[tuple[int, int]],
     poses: Array,
     local: LocalRegistration,
     params: LoopParams,
     report: LoopReport,
-) -> list[tuple[int, int, list[ClosureHypothesis]]]:
-    """Register every candidate pair in one pass over the pings, keeping up to
-    ``hypotheses`` distinct peaks per pair whose similarity passes ``min_score``: pose of
-    j in i in the vehicle frame, with a covariance (the registrar's, when it gives one)."""
-    if not pairs:
-        return []
+) -> Iterator[ClosureJob]:
+    """The candidate pairs' jobs, in one pass over the pings (preprocessed in order, as
+    the registration pass preprocessed them: the flat field follows the pings)."""
     mount = local.mount
     partners: dict[int, list[int]] = {}
     for i, j in pairs:
@@ -219,9 +295,7 @@ def register_hypotheses(
     for i, j in pairs:
         last_use[i] = max(last_use.get(i, -1), j)
     held: dict[int, tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]] = {}
-    refiner: OverlapRefiner | None = None
     sonar = mount.sonar_pose(poses)
-    out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for index, ping in enumerate(pings):
         if index not in wanted and index not in partners:
             local.observe(ping)  # flattened as the registration pass flattened it
@@ -237,37 +311,40 @@ def register_hypotheses(
                 continue
             earlier, earlier_mask = kept
             report.candidates += 1
-            prior = relative_pose(sonar[i], sonar[index])
-            reg = registrar.register_far(
-                registrar.prepare(earlier, earlier_mask),
-                image,
-                prior,
-                prior_sigma_m=params.search_m,
-                n_hypotheses=params.hypotheses,
-                later_mask=mask,
-            )
-            report.registered += 1
-            found: list[ClosureHypothesis] = []
-            for hyp in reg.hypotheses or (reg,):
-                if hyp.score < params.min_score:
-                    continue
-                relative = hyp.relative
-                if params.refine:
-                    if refiner is None or refiner.grid != registrar.grid:
-                        refiner = OverlapRefiner(registrar.grid, registrar.mask)
-                    refined = refiner.refine(earlier, image, relative)
-                    if refined is not None:
-                        relative = refined
-                        report.refined += 1
-                vehicle = mount.vehicle_relative(relative)
-                cov = _closure_cov(hyp.covariance, mount, params)
-                found.append(ClosureHypothesis(vehicle, cov, float(hyp.score)))
-            if not found:
-                report.rejected_score += 1
-                continue
-            out.append((i, index, found))
+            yield ClosureJob(
+                i, index, earlier, earlier_mask, image, mask,
+                relative_pose(sonar[i], sonar[index]), registrar.grid, registrar.mask,
+                registrar.params, params, mount,
+            )  # fmt: skip
         for i in [k for k in held if last_use.get(k, -1) <= index]:
             del held[i]
+
+
+def register_hypotheses(
+    pings: Iterable[Ping],
+    pairs: Sequence[tuple[int, int]],
+    poses: Array,
+    local: LocalRegistration,
+    params: LoopParams,
+    report: LoopReport,
+    pool: TaskPool | None = None,
+) -> list[tuple[int, int, list[ClosureHypothesis]]]:
+    """Register every candidate pair in one pass over the pings, keeping up to
+    ``hypotheses`` distinct peaks per pair whose similarity passes ``min_score``: pose of
+    j in i in the vehicle frame, with a covariance (the registrar's, when it gives one).
+    ``pool``: where the registrations run (``mapping.tasks``; None: here); the answer is
+    the same wherever they do."""
+    if not pairs:
+        return []
+    jobs = closure_jobs(pings, pairs, poses, local, params, report)
+    out: list[tuple[int, int, list[ClosureHypothesis]]] = []
+    for found in (pool or InlinePool()).run(register_pair, jobs):
+        report.registered += 1
+        report.refined += found.refined
+        if not found.hypotheses:
+            report.rejected_score += 1
+            continue
+        out.append((found.i, found.j, found.hypotheses))
     return out
 
 

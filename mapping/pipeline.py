@@ -45,6 +45,7 @@ from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.sonar_depth import SonarHead
 from mapping.survey_graph import GraphParams
+from mapping.tasks import TaskPool
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -344,12 +345,15 @@ def map_survey(
     progress: Callable[[str, int, int], None] | None = None,
     registrations: Sequence[FrameOutcome] | None = None,
     spill: TileSpill | None = None,
+    pool: TaskPool | None = None,
 ) -> SurveyResult:
     """Map a survey: ``pings()`` yields the pings in time order, afresh on each call.
 
     registrations: the local registration of every frame, when already done (the
     streaming engine's survey-end pass reuses its own); otherwise they are computed.
     spill: where tiles the boat has left go (default: kept in memory, compressed).
+    pool: where the pure tasks run (the loop closures' registrations; ``mapping.tasks``,
+    None: here): the map is the same wherever they do.
     """
     params = params or PipelineParams()
     clock = _Clock()
@@ -443,6 +447,7 @@ def map_survey(
             loop_report,
             rigid_s=params.subset_s if mode is Mode.TWO_STAGE else None,
             gyro=gyro,
+            pool=pool,
         )
         poses, closures = placed.poses, placed.closures
         fusion_summary = {**placed.summary, "closures": asdict(placed.closure_report)}

@@ -35,6 +35,7 @@ from mapping.posegraph import Edge
 from mapping.samples import Ping
 from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.survey_graph import GraphParams, chain_constraints, fusion_data
+from mapping.tasks import TaskPool
 
 Array = npt.NDArray[np.float64]
 
@@ -105,6 +106,7 @@ def single_stage(
     loop_report: LoopReport,
     rigid_s: float | None = None,
     gyro: npt.NDArray[np.int64] | None = None,
+    pool: TaskPool | None = None,
 ) -> SingleStageResult:
     """Place the accepted frames. ``closure_source(poses)`` gives what loop closures need
     (a fresh pass over the pings, a registration set-up, the lit range band and half the
@@ -118,7 +120,9 @@ def single_stage(
 
     gyro: every frame's gyro epoch (``navigation.gyro_epochs``): where the IMU was silent
     the filter held its heading, and the chain, not the priors, is where the solver
-    starts from."""
+    starts from.
+
+    pool: where the loop closures' registrations run (``mapping.tasks``; None: here)."""
     n = times.size
     nodes, chain = chain_constraints(
         times, accepted, edges, outcomes, priors, mount, params.graph, gyro
@@ -152,7 +156,7 @@ def single_stage(
         full[nodes] = poses_nodes
         pings, local, lit, half_fan = closure_source(full)
         pairs = find_candidates(times, full, accepted, mount, lit, half_fan, loops)
-        found = register_hypotheses(pings, pairs, full, local, loops, loop_report)
+        found = register_hypotheses(pings, pairs, full, local, loops, loop_report, pool)
         position = {int(k): i for i, k in enumerate(nodes)}
         candidates = [
             ClosureCandidate(position[i], position[j], float(times[i]), float(times[j]), tuple(h))

@@ -79,6 +79,7 @@ from mapping.stream_navigation import Measured, NavigationRecord, NavSample, Pin
 from mapping.stream_params import StreamingParams
 from mapping.stream_reorder import Admission, ReorderBuffer, Sample
 from mapping.stream_window import LiveWindow
+from mapping.tasks import TaskPool
 from mapping.tiles import TileImage, TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -575,6 +576,7 @@ class StreamingEngine:
         pings: Callable[[], Iterable[Ping]],
         progress: Callable[[str, int, int], None] | None = None,
         spill: TileSpill | None = None,
+        pool: TaskPool | None = None,
     ) -> SurveyResult:
         """The survey-end pass over every frame (``pings()`` yields them again, in
         order): the smoothed EKF, the registrations (again, or the live ones), loop
@@ -590,6 +592,7 @@ class StreamingEngine:
             progress,
             registrations=self.outcomes if self.params.reuse_registrations else None,
             spill=spill,
+            pool=pool,
         )
         # Continue the live versions so a subscriber sees every final tile as newer.
         for key in result.mosaic.all_keys():

@@ -1,21 +1,27 @@
-"""The live engine's stages in worker processes (``daemon.workers``): the same map, to the
-bit, wherever the front runs, and a worker killed mid-survey is replaced."""
+"""The mapping's work in worker processes (``daemon.workers``): the same map, to the bit,
+wherever the live engine's front runs or the survey-end pass's tasks do, and a worker
+killed mid-survey is replaced."""
 
 from __future__ import annotations
 
 import os
 import signal
+from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from daemon.config import SiteConfig
-from daemon.replay import mount_from_config, pipeline_params, streaming_params
-from daemon.workers import ProcessFront, live_front
+from daemon.config import SiteConfig, load_config
+from daemon.replay import mount_from_config, pipeline_params, read_navigation, streaming_params
+from daemon.workers import ProcessFront, ProcessPool, live_front
+from drivers.oculus.logfile import iter_pings
+from mapping.pipeline import Mode, map_survey
 from mapping.samples import Ping
 from mapping.streaming import PoseUpdate, StreamingEngine, TileUpdate
+from tools.sim import simulate
 from tools.sim.stream import survey_events
 
 
@@ -107,3 +113,51 @@ def test_a_front_worker_killed_mid_survey_is_replaced_and_the_survey_goes_on(
     # The frames the dead worker held are registered by the new one: none is lost.
     assert stats.frames_mapped >= stats.frames_received - 2
     assert all(np.all(np.isfinite(p)) for p in killed.engine.poses[-100:])
+
+
+def _die_once(job: tuple[int, str]) -> int:
+    """A pure task whose worker dies the first time it meets job 3 (a marker file says it
+    did): the pool must run the job again and go on."""
+    value, marker = job
+    if value == 3 and not Path(marker).exists():
+        Path(marker).touch()
+        os._exit(1)
+    return value * value
+
+
+def test_the_pool_gives_results_in_order_and_runs_a_dead_workers_tasks_again(
+    tmp_path: Path,
+) -> None:
+    said: list[str] = []
+    pool = ProcessPool(2, log=said.append)
+    try:
+        marker = str(tmp_path / "died")
+        results = list(pool.run(_die_once, ((k, marker) for k in range(10))))
+    finally:
+        pool.close()
+    assert results == [k * k for k in range(10)]
+    assert pool.restarts == 1 and len(said) == 1 and "run again" in said[0]
+
+
+def test_the_loop_closures_registered_in_workers_give_the_same_map(tmp_path: Path) -> None:
+    """The survey-end pass's closure registrations in two worker processes: the same
+    closures, the same poses, to the bit (quadrats at 2 Hz: three lanes in 150 s)."""
+    simulate("quadrats", 5, tmp_path, max_pings=300, n_beams=128, ping_rate_hz=2)
+    config = load_config(tmp_path / "site.toml")
+    nav, _ = read_navigation(tmp_path / "nav.tlog", config)
+    mount = mount_from_config(config.sonar)
+    params = pipeline_params(config)
+
+    def pings() -> Iterator[Ping]:
+        return iter_pings(tmp_path / "sonar.oculus")
+
+    here = map_survey(pings, nav, mount, params, Mode.SINGLE_STAGE)
+    pool = ProcessPool(2)
+    try:
+        pooled = map_survey(pings, nav, mount, params, Mode.SINGLE_STAGE, pool=pool)
+    finally:
+        pool.close()
+    assert here.loops.registered >= 10, here.loops  # closures were there to register
+    assert pooled.loops == here.loops
+    assert pooled.closures == here.closures
+    np.testing.assert_array_equal(pooled.poses, here.poses)
