@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 from mapping.frames import SonarMount
 from mapping.stream_front import Front, FrontJob, FrontResult
@@ -297,6 +297,22 @@ class ProcessPool:
             out.popleft()
             yield result
 
+    def submit(self, task: Callable[[J], R], job: J) -> _Handle[R]:
+        return _Handle(self, task, job)
+
+    def _recover(self, broken: ProcessPoolExecutor, out: int) -> None:
+        """The pool ``broken`` lost a worker: start another pool (once for all the tasks
+        it had out)."""
+        if self._executor is not broken:
+            return
+        self.restarts += 1
+        self.log(
+            f"a mapping worker died with {out} tasks out: the pool is started again and "
+            "they run again"
+        )
+        broken.shutdown(wait=False, cancel_futures=True)
+        self._executor = self._start()
+
     def pids(self) -> list[int]:
         """The worker processes' ids (for memory accounting)."""
         processes = getattr(self._executor, "_processes", None) or {}
@@ -304,6 +320,26 @@ class ProcessPool:
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+
+
+class _Handle(Generic[R]):
+    """A task submitted to a ``ProcessPool``: run again in the new pool if a worker died."""
+
+    def __init__(self, pool: ProcessPool, task: Callable[[J], R], job: J) -> None:
+        self._pool = pool
+        self._task: Callable[[Any], R] = task
+        self._job: Any = job
+        self._executor = pool._executor
+        self._future: Future[R] = pool._executor.submit(task, job)
+
+    def result(self) -> R:
+        while True:
+            try:
+                return self._future.result()
+            except BrokenProcessPool:
+                self._pool._recover(self._executor, 1)
+                self._executor = self._pool._executor
+                self._future = self._executor.submit(self._task, self._job)
 
 
 def task_pool(

@@ -984,3 +984,20 @@ class FmtRegistrar:
         denominator = math.sqrt(max(var_a, 0.0) * max(var_b, 0.0))
         score = (sab - sa * sb / count) / denominator if denominator > 0 else 0.0
         return float(score), count / max(self._mask_count, 1)
+
+
+_REGISTRARS: dict[tuple[SonarGrid, FmtParams, bytes], FmtRegistrar] = {}
+
+
+def cached_registrar(
+    grid: SonarGrid, mask: npt.NDArray[np.bool_], params: FmtParams
+) -> FmtRegistrar:
+    """A registrar for this grid, fan and settings, built once per process (a worker
+    process's pure tasks share it; a new geometry replaces it)."""
+    key = (grid, params, mask.tobytes())
+    registrar = _REGISTRARS.get(key)
+    if registrar is None:
+        _REGISTRARS.clear()
+        registrar = FmtRegistrar(grid, mask, params)
+        _REGISTRARS[key] = registrar
+    return registrar

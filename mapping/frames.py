@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration
+from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration, cached_registrar
+from mapping.grid import SonarGrid
 from mapping.polar import Attitude, FanGeometry
 from mapping.posegraph import Edge
 from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame
@@ -174,17 +175,66 @@ class FrameOutcome:
 _ORIGIN = np.zeros(3)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class _Kept:
-    """An accepted frame as the registration keeps it."""
+    """An accepted frame as the registration keeps it: its frame on the registration grid,
+    prepared for the registrar (``FmtRegistrar.prepare``) when a registration here first
+    needs it (one computed ahead, elsewhere, does not)."""
 
     index: int
     time: float
     prior: Array
-    prepared: PreparedFrame
+    coarse: npt.NDArray[np.float32]
+    coarse_mask: npt.NDArray[np.bool_] | None
+    registrar: FmtRegistrar
     odometry: Array | None
     gyro: int | None = 0
     """Gyro epoch (``NavFilter.gyro_epoch_at``; None without a fresh IMU sample)."""
+    _prepared: PreparedFrame | None = None
+
+    @property
+    def prepared(self) -> PreparedFrame:
+        if self._prepared is None:
+            self._prepared = self.registrar.prepare(self.coarse, self.coarse_mask)
+        return self._prepared
+
+
+@dataclass(frozen=True, slots=True)
+class PairJob:
+    """A registration of two frames on the registration grid, as ``LocalRegistration``
+    asks for it (``FmtRegistrar.register`` of the two prepared frames): a pure task
+    (``mapping.tasks``), its answer the same wherever it runs."""
+
+    earlier: int
+    later: int
+    earlier_coarse: npt.NDArray[np.float32]
+    earlier_mask: npt.NDArray[np.bool_] | None
+    later_coarse: npt.NDArray[np.float32]
+    later_mask: npt.NDArray[np.bool_] | None
+    expected: RelativePose
+    prior_sigma_m: float
+    yaw_known: bool
+    grid: SonarGrid
+    fan: npt.NDArray[np.bool_]
+    fmt: FmtParams
+
+
+def register_pair_job(job: PairJob) -> Registration:
+    """The registration ``job`` asks for (``PairJob``), on a registrar this process keeps
+    for the grid."""
+    registrar = cached_registrar(job.grid, job.fan, job.fmt)
+    return registrar.register(
+        registrar.prepare(job.earlier_coarse, job.earlier_mask),
+        registrar.prepare(job.later_coarse, job.later_mask),
+        job.expected,
+        prior_sigma_m=job.prior_sigma_m,
+        yaw_known=job.yaw_known,
+    )
+
+
+PairLookup = Callable[[int, int, RelativePose, float, bool], "Registration | None"]
+"""What ``LocalRegistration.ahead`` answers: the registration of frame ``later`` against
+``earlier`` with this prior, sigma and ``yaw_known`` when it was computed ahead, else None."""
 
 
 @dataclass
@@ -217,6 +267,9 @@ class LocalRegistration:
         self._steps: deque[tuple[float, float, float, float, float]] = deque()
         """The chain's registered steps (from time, to time, forward, starboard, yaw) of
         the last ``coast_rate_window_s``: its velocity and turn rate."""
+        self.ahead: PairLookup | None = None
+        """Registrations computed ahead (``mapping.pipeline``'s survey-end pass hands them
+        to worker processes): asked first, computed here when it has none."""
         self._rate: tuple[tuple[float, float, float], float, float] | None = None
         """The chain's velocity and turn rate (vehicle frame: forward, starboard m/s, yaw
         rad/s), the time of the last step it was measured with, and the span it covers;
@@ -256,6 +309,10 @@ class LocalRegistration:
             self._last = self._key = None  # a new geometry cannot be registered against the old
         attitude = self.attitude(ping.time) if self.attitude is not None else None
         return self.preprocessor(ping.image, attitude, ping.time)
+
+    def same_geometry(self, ping: Ping) -> bool:
+        """The ping's fan is the last preprocessed one's (no new tables, no new chain)."""
+        return self._same_geometry(ping)
 
     def _same_geometry(self, ping: Ping) -> bool:
         last = self._fan_of
@@ -314,8 +371,10 @@ class LocalRegistration:
         if prior is None or not np.all(np.isfinite(prior)):
             return FrameOutcome(index, time, False, "no navigation prior")
         assert self.registrar is not None
-        prepared = self.registrar.prepare(frame.coarse, frame.coarse_mask)
-        here = _Kept(index, time, prior, prepared, odometry, gyro_epoch)
+        here = _Kept(
+            index, time, prior, frame.coarse, frame.coarse_mask, self.registrar, odometry,
+            gyro_epoch,
+        )  # fmt: skip
         last, key = self._last, self._key
         if last is None or key is None or time - last.time > self.params.max_gap_s:
             # The first frame, or a chain restart: kept on its prior alone (the rate
@@ -378,13 +437,18 @@ class LocalRegistration:
         expected_sonar = self.mount.sonar_relative(expected_vehicle)
         # The whole correlation surface is searched; the prediction weighs its peaks.
         gyro = here.gyro is not None and here.gyro == reference.gyro
-        reg = self.registrar.register(
-            reference.prepared,
-            here.prepared,
-            expected_sonar,
-            prior_sigma_m=prior_sigma,
-            yaw_known=self.yaw_from_gyro and gyro,
-        )
+        yaw_known = self.yaw_from_gyro and gyro
+        reg = None
+        if self.ahead is not None:
+            reg = self.ahead(reference.index, here.index, expected_sonar, prior_sigma, yaw_known)
+        if reg is None:
+            reg = self.registrar.register(
+                reference.prepared,
+                here.prepared,
+                expected_sonar,
+                prior_sigma_m=prior_sigma,
+                yaw_known=yaw_known,
+            )
         measured = self.mount.vehicle_relative(reg.relative)
         delta_p = math.hypot(
             measured.forward_m - expected_vehicle.forward_m,
@@ -412,6 +476,22 @@ class LocalRegistration:
         time of the last step it was measured with and the span it covers; None before
         the first registered step."""
         return self._rate
+
+    @property
+    def key_index(self) -> int | None:
+        """The frame the next registration is tried against first (the keyframe)."""
+        return None if self._key is None else self._key.index
+
+    @property
+    def last_index(self) -> int | None:
+        """The last frame accepted (the chain goes on from it)."""
+        return None if self._last is None else self._last.index
+
+    def plain_prior(self, earlier: Array, later: Array) -> tuple[RelativePose, float]:
+        """The prior (sonar frame) and translation sigma a registration of a frame at pose
+        ``later`` against one at ``earlier`` asks for where the gyro joins them and
+        neither has odometry (``_register``: the survey-end pass's, from the priors)."""
+        return self.mount.sonar_relative(relative_pose(earlier, later)), self.params.tau_p_m
 
     def chain_rate(self, time: float, max_age_s: float) -> tuple[float, float, float] | None:
         """The chain's velocity and turn rate (vehicle frame: forward, starboard m/s, yaw

@@ -23,7 +23,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
-from mapping.fmt import FmtParams, FmtRegistrar
+from mapping.fmt import FmtParams, FmtRegistrar, cached_registrar
 from mapping.frames import LocalRegistration, SonarMount
 from mapping.grid import SonarGrid
 from mapping.overlap import OverlapRefiner
@@ -231,19 +231,18 @@ class ClosureFound:
     refined: int
 
 
-_REGISTRARS: dict[tuple[SonarGrid, FmtParams, bytes], tuple[FmtRegistrar, OverlapRefiner]] = {}
-"""Registrars (and refiners) a process has built, by grid, settings and fan: a survey's
-pairs share one."""
+_REFINERS: dict[tuple[SonarGrid, bytes], OverlapRefiner] = {}
 
 
 def _registrar(job: ClosureJob) -> tuple[FmtRegistrar, OverlapRefiner]:
-    key = (job.grid, job.fmt, job.fan.tobytes())
-    made = _REGISTRARS.get(key)
-    if made is None:
-        _REGISTRARS.clear()  # a new geometry: the old one's are not asked for again
-        made = (FmtRegistrar(job.grid, job.fan, job.fmt), OverlapRefiner(job.grid, job.fan))
-        _REGISTRARS[key] = made
-    return made
+    """The registrar and refiner for the job's grid and fan, built once per process."""
+    key = (job.grid, job.fan.tobytes())
+    refiner = _REFINERS.get(key)
+    if refiner is None:
+        _REFINERS.clear()
+        refiner = OverlapRefiner(job.grid, job.fan)
+        _REFINERS[key] = refiner
+    return cached_registrar(job.grid, job.fan, job.fmt), refiner
 
 
 def register_pair(job: ClosureJob) -> ClosureFound:

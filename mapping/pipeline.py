@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from mapping.ahead import register_frames
 from mapping.blend import BlendParams, make_scorer
 from mapping.bottom import BottomParams, SeabedAttitude, SonarGeometry, seabed_attitude
 from mapping.ekf import EkfParams
@@ -387,25 +388,16 @@ def map_survey(
     registration = LocalRegistration(
         mount, params.preprocess, params.fmt, params.registration, attitude
     )
-    for index, ping in enumerate(pings() if registrations is None else ()):
-        if index >= n:
-            break
-        t1 = time.perf_counter()
-        prior = priors[index] if estimate.valid[index] else None
-        if mode is Mode.GPS_ONLY:
+    if registrations is None and mode is Mode.GPS_ONLY:
+        for index, ping in enumerate(pings()):
             # Placed by its prior alone: its image is first looked at when blending.
+            prior = priors[index] if estimate.valid[index] else None
             reason = "" if prior is not None else "no navigation prior"
             outcomes.append(FrameOutcome(index, ping.time, prior is not None, reason))
-        else:
-            sonar_frame = registration.frame(ping)
-            t1 = clock.add("preprocess", t1)
-            epoch = int(gyro[index]) if gyro[index] >= 0 else None
-            outcomes.append(
-                registration.register(index, ping.time, sonar_frame, prior, gyro_epoch=epoch)
-            )
-        clock.add("registration", t1)
-        if progress is not None:
-            progress("registering", index + 1, n)
+    elif registrations is None:
+        outcomes = register_frames(
+            pings(), n, registration, priors, estimate.valid, gyro, pool, clock.add, progress
+        )
     if len(outcomes) != n:
         raise ValueError(f"{len(outcomes)} registrations for {n} frames")
     accepted = np.array([o.accepted for o in outcomes], bool)

@@ -139,9 +139,10 @@ def test_the_pool_gives_results_in_order_and_runs_a_dead_workers_tasks_again(
     assert pool.restarts == 1 and len(said) == 1 and "run again" in said[0]
 
 
-def test_the_loop_closures_registered_in_workers_give_the_same_map(tmp_path: Path) -> None:
-    """The survey-end pass's closure registrations in two worker processes: the same
-    closures, the same poses, to the bit (quadrats at 2 Hz: three lanes in 150 s)."""
+def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> None:
+    """The survey-end pass's registrations (computed ahead, ``mapping.ahead``) and loop
+    closures in two worker processes: the same registrations, closures and poses, to
+    the bit (quadrats at 2 Hz: three lanes in 150 s)."""
     simulate("quadrats", 5, tmp_path, max_pings=300, n_beams=128, ping_rate_hz=2)
     config = load_config(tmp_path / "site.toml")
     nav, _ = read_navigation(tmp_path / "nav.tlog", config)
@@ -158,6 +159,8 @@ def test_the_loop_closures_registered_in_workers_give_the_same_map(tmp_path: Pat
     finally:
         pool.close()
     assert here.loops.registered >= 10, here.loops  # closures were there to register
+    assert pooled.edges == here.edges
+    assert [o.reason for o in pooled.outcomes] == [o.reason for o in here.outcomes]
     assert pooled.loops == here.loops
     assert pooled.closures == here.closures
     np.testing.assert_array_equal(pooled.poses, here.poses)

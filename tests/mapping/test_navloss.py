@@ -57,8 +57,8 @@ def test_without_the_gyro_a_frame_is_expected_where_the_chain_was_going() -> Non
     pose = np.zeros(3)
     # The chain's last steps: 0.4 m/s ahead, turning 12 degrees a second, 1 s of them.
     local._rate = ((0.4, 0.0, math.radians(12.0)), 10.0, 1.0)
-    last = _Kept(1, 10.0, pose, None, None, None)  # type: ignore[arg-type]
-    here = _Kept(2, 10.5, pose, None, None, None)  # type: ignore[arg-type]
+    last = _Kept(1, 10.0, pose, None, None, None, None, None)  # type: ignore[arg-type]
+    here = _Kept(2, 10.5, pose, None, None, None, None, None)  # type: ignore[arg-type]
     held, sigma_short, _ = local._coasting(last, here, _held())
     assert math.degrees(held.yaw_rad) == pytest.approx(6.0, abs=1e-9)
     # The chord of the arc: turned by half the turn, sinc-shortened.
@@ -66,13 +66,13 @@ def test_without_the_gyro_a_frame_is_expected_where_the_chain_was_going() -> Non
     assert held.forward_m == pytest.approx(chord * math.cos(math.radians(3.0)), abs=1e-9)
     assert held.starboard_m == pytest.approx(chord * math.sin(math.radians(3.0)), abs=1e-9)
     # The longer the prediction, the less it is worth...
-    later = _Kept(3, 11.5, pose, None, None, None)  # type: ignore[arg-type]
+    later = _Kept(3, 11.5, pose, None, None, None, None, None)  # type: ignore[arg-type]
     _, sigma_long, _ = local._coasting(last, later, _held())
     assert sigma_long > 3 * sigma_short
     # ... and once the rate is older than a boat's speed can say, or without one, the
     # filter's held motion is all there is, as uncertain as a boat's speed and turn.
-    much_later = _Kept(4, 14.0, pose, None, None, None)  # type: ignore[arg-type]
-    after = _Kept(5, 14.5, pose, None, None, None)  # type: ignore[arg-type]
+    much_later = _Kept(4, 14.0, pose, None, None, None, None, None)  # type: ignore[arg-type]
+    after = _Kept(5, 14.5, pose, None, None, None, None, None)  # type: ignore[arg-type]
     expected, sigma_p, sigma_a = local._coasting(much_later, after, _held())
     assert expected == _held()
     assert sigma_p == pytest.approx(params.coast_speed_sigma_mps * 0.5)
