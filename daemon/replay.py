@@ -416,6 +416,7 @@ def replay(
             "rejected": dict(result.rejected),
             "placed_without_registration": result.frames_unregistered,
             "registrations": len(result.edges),
+            "registrations_in_workers": dict(result.ahead),
             "loop_closures": asdict(result.loops),
             "skipped_in_log": skipped,
         },

@@ -173,10 +173,13 @@ def register_frames(
     pool: TaskPool | None,
     timed: Callable[[str, float], float],
     progress: Callable[[str, int, int], None] | None = None,
+    counts: dict[str, int] | None = None,
 ) -> list[FrameOutcome]:
     """Register the survey's first ``n`` frames in order (``LocalRegistration``), the
     pairs it will ask for computed ahead in ``pool`` when one is given. ``timed(stage,
-    started)`` counts a stage's time since ``started`` and returns the time now."""
+    started)`` counts a stage's time since ``started`` and returns the time now.
+    ``counts``: given, it gets how many registrations were taken from the pool
+    (``ahead``) and how many computed here (``here``)."""
     ahead = RegisterAhead(local, pool, 3 * pool.workers + 2) if pool is not None else None
     outcomes: list[FrameOutcome] = []
     waiting: deque[_Frame] = deque()
@@ -223,4 +226,7 @@ def register_frames(
         if progress is not None:
             progress("registering", entry.index + 1, n)
     local.ahead = None
+    if counts is not None and ahead is not None:
+        counts["ahead"] = ahead.taken
+        counts["here"] = ahead.computed_here
     return outcomes

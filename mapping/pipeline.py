@@ -115,6 +115,9 @@ class SurveyResult:
     bottom: dict[str, Any] = field(default_factory=dict)
     """Where each ping's seabed came from (``mapping.bottom``): ``source`` "echosounder" or
     "configured", the soundings used, how many pings had a plane, their altitudes."""
+    ahead: dict[str, int] = field(default_factory=dict)
+    """With a pool: the registrations taken from it (``ahead``: computed ahead in worker
+    processes) and those computed in the pass's own process (``here``)."""
     fusion: dict[str, Any] = field(default_factory=dict)
     """Single-stage: what the fusion estimated (gyro bias, compass error, GNSS offset)
     and how well each kind of measurement fits."""
@@ -374,6 +377,7 @@ def map_survey(
     started = clock.add("ekf", started)
 
     outcomes: list[FrameOutcome] = list(registrations) if registrations is not None else []
+    ahead: dict[str, int] = {}
     track = AttitudeTrack(nav.attitude, params.single_stage.graph.sonar_latency_s)
     attitude: Callable[[float], Attitude | None] | None = (
         track.at if params.project_attitude else None
@@ -396,8 +400,9 @@ def map_survey(
             outcomes.append(FrameOutcome(index, ping.time, prior is not None, reason))
     elif registrations is None:
         outcomes = register_frames(
-            pings(), n, registration, priors, estimate.valid, gyro, pool, clock.add, progress
-        )
+            pings(), n, registration, priors, estimate.valid, gyro, pool, clock.add, progress,
+            ahead,
+        )  # fmt: skip
     if len(outcomes) != n:
         raise ValueError(f"{len(outcomes)} registrations for {n} frames")
     accepted = np.array([o.accepted for o in outcomes], bool)
@@ -504,4 +509,5 @@ def map_survey(
         closures=closures,
         loops=loop_report,
         fusion=fusion_summary,
+        ahead=ahead,
     )
