@@ -23,7 +23,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TypeVar, overload
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -72,29 +72,6 @@ class Measured:
 
 
 NOTHING = Measured()
-
-
-class _Head(Sequence[T]):
-    """The first ``count`` items of a sequence, without a copy (copied only when the
-    bottom model is rebuilt, every few seconds)."""
-
-    def __init__(self, items: Sequence[T], count: int) -> None:
-        self._items = items
-        self._count = min(count, len(items))
-
-    def __len__(self) -> int:
-        return self._count
-
-    @overload
-    def __getitem__(self, index: int) -> T: ...
-    @overload
-    def __getitem__(self, index: slice) -> Sequence[T]: ...
-    def __getitem__(self, index: int | slice) -> T | Sequence[T]:
-        if isinstance(index, slice):
-            return [self[i] for i in range(*index.indices(self._count))]
-        if not -self._count <= index < self._count:
-            raise IndexError(index)
-        return self._items[index % self._count]
 
 
 @dataclass(frozen=True, slots=True)
@@ -268,33 +245,27 @@ class NavigationRecord:
         return PingNavigation(prior, odometry, gyro, self._last_compass, self._compass_epoch)
 
     def ping_attitude(
-        self,
-        stamp: float,
-        times: Sequence[float],
-        poses: Sequence[Array],
-        upto: int | None = None,
+        self, stamp: float, times: Sequence[float], poses: Sequence[Array]
     ) -> Attitude | None:
         """The attitude a ping stamped ``stamp`` is projected with: its roll and pitch
         (``tilt_at``; level when the pipeline does not project the attitude) with the
         seabed's altitude and slope under it (``bottom_at``). ``times``, ``poses``: the
-        live map's frames so far (NaN where rejected), which place the soundings; only
-        the first ``upto`` of them (None: all)."""
+        live map's frames so far (NaN where rejected), which place the soundings
+        (``live_bottom``)."""
+        return self.attitude_over(stamp, self.live_bottom(stamp, times, poses))
+
+    def attitude_over(self, stamp: float, model: BottomModel | None) -> Attitude | None:
+        """``ping_attitude`` over a bottom model built already (``build_bottom``; None:
+        none yet)."""
         tilt = self.tilt_at(stamp) if self.pipeline.project_attitude else None
-        if upto is not None and upto < len(times):
-            return self.bottom_at(stamp, tilt, _Head(times, upto), _Head(poses, upto))
-        return self.bottom_at(stamp, tilt, times, poses)
+        return self.bottom_at(stamp, tilt, model)
 
     def bottom_at(
-        self,
-        stamp: float,
-        tilt: Attitude | None,
-        times: Sequence[float],
-        poses: Sequence[Array],
+        self, stamp: float, tilt: Attitude | None, model: BottomModel | None
     ) -> Attitude | None:
-        """``tilt`` with the altitude and slope of the seabed plane under the sonar at
-        ``stamp`` (the ping being processed: the filter's pose now) from the echosounder's
-        soundings so far; ``tilt`` as it is without them."""
-        model = self.live_bottom(stamp, times, poses)
+        """``tilt`` with the altitude and slope of the seabed plane of ``model`` under the
+        sonar at ``stamp`` (the ping being processed: the filter's pose now); ``tilt`` as
+        it is without one."""
         if model is None or not self.nav.initialised:
             return tilt
         state, _ = self.nav.state()
@@ -312,26 +283,53 @@ class NavigationRecord:
         """The bottom model of the soundings so far, placed by the live map's ``poses``
         at ``times``, rebuilt when ``LIVE_BOTTOM_REFRESH_S`` has passed and new soundings
         came (None: no echosounder, or too few)."""
+        model = self.build_bottom(now, times, poses, self.held)
+        if model is not None:
+            self._bottom = model
+        return self._bottom
+
+    @property
+    def held(self) -> tuple[int, int]:
+        """How many soundings and attitude reports the record holds: what a stage behind
+        the filter builds the bottom model over, as it stood when a ping was released
+        (``build_bottom``)."""
+        return len(self._ranges), len(self._attitudes)
+
+    def build_bottom(
+        self,
+        now: float,
+        times: Sequence[float],
+        poses: Sequence[Array],
+        held: tuple[int, int],
+    ) -> BottomModel | None:
+        """A new bottom model of the first ``held`` soundings (and attitude reports, which
+        tilt them), placed by the live map's ``poses`` at ``times``, when
+        ``LIVE_BOTTOM_REFRESH_S`` has passed since the last one and soundings came since;
+        None otherwise (or no echosounder, or too few)."""
         b = self.pipeline.bottom
-        if not b.use_echosounder or not self._ranges or self._geometry is None:
+        soundings, attitudes = held
+        if not b.use_echosounder or soundings == 0 or self._geometry is None:
             return None
         when, count = self._bottom_built
-        if now - when < LIVE_BOTTOM_REFRESH_S or len(self._ranges) == count:
-            return self._bottom
-        self._bottom_built = (now, len(self._ranges))
+        if now - when < LIVE_BOTTOM_REFRESH_S or soundings == count:
+            return None
+        self._bottom_built = (now, soundings)
         track_times = np.array(times, float)
         track = np.array(poses, float).reshape(-1, 3)
         if int(np.all(np.isfinite(track), axis=1).sum()) < 2:
-            return self._bottom
+            return None
         latency = self.pipeline.single_stage.graph.sonar_latency_s
-        attitude = AttitudeTrack(self._attitudes, latency)
+        attitude = AttitudeTrack(self._attitudes[:attitudes], latency)
         points, stamps = sounding_points(
-            self._ranges, pose_interpolator(track_times, track), attitude.at, b.echosounder
+            self._ranges[:soundings],
+            pose_interpolator(track_times, track),
+            attitude.at,
+            b.echosounder,
         )
-        if len(points) >= b.min_soundings:
-            geometry = self._geometry
-            self._bottom = BottomModel(points, stamps, geometry.down_m, geometry.footprint(), b)
-        return self._bottom
+        if len(points) < b.min_soundings:
+            return None
+        geometry = self._geometry
+        return BottomModel(points, stamps, geometry.down_m, geometry.footprint(), b)
 
     def tilt_at(self, stamp: float) -> Attitude | None:
         """Roll and pitch when a ping stamped ``stamp`` was taken, from the recent

@@ -40,10 +40,10 @@ The engine holds what is the live map's own (each frame's stamp and pose), route
 stage's results to the next, and publishes the poses and tiles. The stages after the
 front take the navigation's measurements and the front's frames in one queue, in the
 order the samples were released, whenever the front's results arrive: they see the same
-sequence wherever the front runs. The one thing the front is given from them, the live
-poses that place the echosounder's soundings (``ping_attitude``), is taken as each frame
-was first chained, ``front_depth`` frames back. The map is the same, to the bit, for any
-placement of the front.
+sequence wherever the front runs. The one thing the front is given from them, the bottom
+model of the echosounder's soundings placed by the live poses (built after a frame, over
+the soundings released with its ping), is the newest built ``front_depth`` frames back.
+The map is the same, to the bit, for any placement of the front.
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.blend import FrameScorer
+from mapping.bottom import BottomModel
 from mapping.ekf import NavFilter
 from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.geo import LocalFrame
@@ -134,6 +135,8 @@ class _Sent:
     at: PingNavigation
     sent: float
     """``time.perf_counter`` when it was handed over."""
+    held: tuple[int, int]
+    """The soundings and attitude reports the navigation held then (``NavigationRecord.held``)."""
 
 
 @dataclass
@@ -213,10 +216,11 @@ class StreamingEngine:
         self.edges: list[Edge] = []
         self.sent_at = array("d")
         """Per frame: ``time.perf_counter`` when its ping went to the front (latency)."""
-        self._placed: list[Array] = []
-        """Each frame's pose when it was chained (NaN where rejected), never changed
-        after: what places the echosounder's soundings for the front (``_send``), the
-        same whenever the front asks."""
+        self._bottoms: deque[tuple[int, BottomModel]] = deque()
+        """Bottom models of the echosounder's soundings, each with the frame after which
+        it was built (``NavigationRecord.build_bottom``, over the live poses then): a ping
+        is projected over the newest built ``front_depth`` frames before it, the same
+        whenever the front asks."""
 
     # -- the stages' parts others read -----------------------------------------------------
     @property
@@ -346,12 +350,19 @@ class StreamingEngine:
         self._take(upto=upto)
         started = clock.perf_counter()
         at = self.navigation.at_ping(ping)
-        attitude = self.navigation.ping_attitude(ping.time, self.times, self._placed, upto)
+        attitude = self.navigation.attitude_over(ping.time, self._bottom_before(upto))
         self.stats.time("ekf", started)
         self.front.submit(FrontJob(index, ping, at, attitude))
         sent = clock.perf_counter()
         self.sent_at.append(sent)
-        self._queue.append(_Sent(index, ping.time, at, sent))
+        self._queue.append(_Sent(index, ping.time, at, sent, self.navigation.held))
+
+    def _bottom_before(self, upto: int) -> BottomModel | None:
+        """The newest bottom model built after a frame before ``upto`` (``_bottoms``)."""
+        bottoms = self._bottoms
+        while len(bottoms) > 1 and bottoms[1][0] < upto:
+            bottoms.popleft()
+        return bottoms[0][1] if bottoms and bottoms[0][0] < upto else None
 
     def _take(self, upto: int | None = None, everything: bool = False) -> None:
         """The stages after the front take what waits for them, in order: navigation at
@@ -398,7 +409,7 @@ class StreamingEngine:
             stats.frames_rejected += 1
             stats.rejected[outcome.reason] = stats.rejected.get(outcome.reason, 0) + 1
             self.poses.append(np.full(3, np.nan))
-            self._placed.append(self.poses[-1])
+            self._build_bottom(sent)
             return
         assert at.prior is not None
         stats.frames_mapped += 1
@@ -412,7 +423,6 @@ class StreamingEngine:
         started = stats.time("closures", started)
         pose = self.chain.live_pose(index)
         self.poses.append(pose)
-        self._placed.append(pose.copy())
         # Blend at once at the chained pose.
         sonar = self.mount.sonar_pose(pose)
         self.drawing.draw(index, sent.time, sonar_frame, self.chain.grid, sonar, self.frame)
@@ -425,6 +435,14 @@ class StreamingEngine:
         if self.params.resolve.enabled:
             self._redraw(sent.time, self.params.resolve.redraws_per_frame)
         self._render(force=False)
+        self._build_bottom(sent)
+
+    def _build_bottom(self, sent: _Sent) -> None:
+        """After a frame: a new bottom model when one is due, over the live poses now and
+        the soundings the navigation held when the frame's ping was released."""
+        model = self.navigation.build_bottom(sent.time, self.times, self.poses, sent.held)
+        if model is not None:
+            self._bottoms.append((sent.index, model))
 
     # -- the live window -------------------------------------------------------------
     def _solve_window(self, final: bool) -> None:
