@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import signal
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -147,7 +147,7 @@ def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> No
     config = load_config(tmp_path / "site.toml")
     nav, _ = read_navigation(tmp_path / "nav.tlog", config)
     mount = mount_from_config(config.sonar)
-    params = pipeline_params(config)
+    params = replace(pipeline_params(config), register_ahead=True)
 
     def pings() -> Iterator[Ping]:
         return iter_pings(tmp_path / "sonar.oculus")
@@ -159,6 +159,7 @@ def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> No
     finally:
         pool.close()
     assert here.loops.registered >= 10, here.loops  # closures were there to register
+    assert pooled.ahead["ahead"] >= 250, pooled.ahead  # the registrations came from the pool
     assert pooled.edges == here.edges
     assert [o.reason for o in pooled.outcomes] == [o.reason for o in here.outcomes]
     assert pooled.loops == here.loops
