@@ -151,8 +151,12 @@ class CoverageSource:
     def __init__(self, session: zenoh.Session, vehicle: str, survey: str = "s1") -> None:
         self.summary_key = coverage_key(vehicle, survey)
         self.raster_key = coverage_raster_key(vehicle, survey)
-        self.summary_pub = session.declare_publisher(self.summary_key)
-        self.raster_pub = session.declare_publisher(self.raster_key)
+        # Every put is to arrive (the tests count them): blocking, not dropped when the
+        # link is congested (a loaded machine dropped the two stale versions of
+        # test_station_coverage, which then waited for them in vain).
+        block = zenoh.CongestionControl.BLOCK
+        self.summary_pub = session.declare_publisher(self.summary_key, congestion_control=block)
+        self.raster_pub = session.declare_publisher(self.raster_key, congestion_control=block)
         self.latest: dict[str, tuple[bytes, bytes | None]] = {}
         self.queryable = session.declare_queryable(
             coverage_selector(vehicle), self._serve, complete=True
