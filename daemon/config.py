@@ -176,9 +176,9 @@ class LiveConfig:
     registration_res_m: float = 0.03
     """Pixel size the live registrations work on (m): coarser is faster (the FFTs' work
     goes with the pixel count), finer measures each step better. 4 cm cut the live
-    registration by 40 % but made the live map's lanes worse where frames are far apart
-    (quadrats at 2 Hz, seed 6: 8.7 -> 15.0 cm; seven surveys of the matrix, median 6.6 ->
-    8.7 cm against 3 cm's 5.9, with the gyro's turn)."""
+    registration by about a third but made the live map's lanes worse where frames are
+    far apart (quadrats at 2 Hz, seed 6: 8.7 -> 15.0 cm; seven surveys of the matrix,
+    median 6.6 -> 8.7 cm against 3 cm's 5.9, with the gyro's turn)."""
     yaw_from_gyro: bool = True
     """Take each live registration's turn from the gyro where the filter's gyro joins the
     two frames, and search no rotation; false: search it as the survey-end pass does."""

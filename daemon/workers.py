@@ -23,6 +23,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from itertools import islice
 from typing import Any, Generic, TypeVar
 
 from mapping.frames import SonarMount
@@ -268,48 +269,24 @@ class ProcessPool:
         )
 
     def run(self, task: Callable[[J], R], jobs: Iterable[J]) -> Iterator[R]:
-        out: deque[tuple[J, Future[R]]] = deque()
+        out: deque[_Handle[R]] = deque()
         remaining = iter(jobs)
-        exhausted = False
         while True:
-            while not exhausted and len(out) < self.ahead:
-                try:
-                    job = next(remaining)
-                except StopIteration:
-                    exhausted = True
-                    break
-                out.append((job, self._executor.submit(task, job)))
+            out.extend(self.submit(task, job) for job in islice(remaining, self.ahead - len(out)))
             if not out:
                 return
-            job, future = out[0]
-            try:
-                result = future.result()
-            except BrokenProcessPool:
-                self.restarts += 1
-                self.log(
-                    f"a mapping worker died with {len(out)} tasks out: the pool is "
-                    "started again and they run again"
-                )
-                self._executor.shutdown(wait=False, cancel_futures=True)
-                self._executor = self._start()
-                out = deque((j, self._executor.submit(task, j)) for j, _ in out)
-                continue
-            out.popleft()
-            yield result
+            yield out.popleft().result()
 
     def submit(self, task: Callable[[J], R], job: J) -> _Handle[R]:
         return _Handle(self, task, job)
 
-    def _recover(self, broken: ProcessPoolExecutor, out: int) -> None:
+    def _recover(self, broken: ProcessPoolExecutor) -> None:
         """The pool ``broken`` lost a worker: start another pool (once for all the tasks
         it had out)."""
         if self._executor is not broken:
             return
         self.restarts += 1
-        self.log(
-            f"a mapping worker died with {out} tasks out: the pool is started again and "
-            "they run again"
-        )
+        self.log("a mapping worker died: the pool is started again and its tasks run again")
         broken.shutdown(wait=False, cancel_futures=True)
         self._executor = self._start()
 
@@ -329,17 +306,24 @@ class _Handle(Generic[R]):
         self._pool = pool
         self._task: Callable[[Any], R] = task
         self._job: Any = job
-        self._executor = pool._executor
-        self._future: Future[R] = pool._executor.submit(task, job)
+        self._future = self._submit()
+
+    def _submit(self) -> Future[R]:
+        """Hand the task to the pool's executor; one found broken is replaced first."""
+        while True:
+            self._executor = self._pool._executor
+            try:
+                return self._executor.submit(self._task, self._job)
+            except BrokenProcessPool:
+                self._pool._recover(self._executor)
 
     def result(self) -> R:
         while True:
             try:
                 return self._future.result()
             except BrokenProcessPool:
-                self._pool._recover(self._executor, 1)
-                self._executor = self._pool._executor
-                self._future = self._executor.submit(self._task, self._job)
+                self._pool._recover(self._executor)
+                self._future = self._submit()
 
 
 def task_pool(

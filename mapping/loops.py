@@ -303,7 +303,11 @@ def closure_jobs(
         image, mask = frame.image, frame.own_mask
         if index in wanted:
             held[index] = (image, mask)
-        registrar = local.fine_registrar
+        # The blending grid and fan (``LocalRegistration.fine_registrar``'s), for the
+        # registrar the task builds where it runs.
+        preprocessor = local.preprocessor
+        assert preprocessor is not None and preprocessor.grid is not None
+        grid, fan = preprocessor.grid, preprocessor.tables.mask
         for i in partners.get(index, []):
             kept = held.get(i)
             if kept is None:
@@ -312,8 +316,7 @@ def closure_jobs(
             report.candidates += 1
             yield ClosureJob(
                 i, index, earlier, earlier_mask, image, mask,
-                relative_pose(sonar[i], sonar[index]), registrar.grid, registrar.mask,
-                registrar.params, params, mount,
+                relative_pose(sonar[i], sonar[index]), grid, fan, local.fmt, params, mount,
             )  # fmt: skip
         for i in [k for k in held if last_use.get(k, -1) <= index]:
             del held[i]

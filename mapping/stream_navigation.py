@@ -23,7 +23,6 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -45,7 +44,6 @@ from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, P
 from mapping.se2 import turn
 
 Array = npt.NDArray[np.float64]
-T = TypeVar("T")
 NavSample = ImuSample | GnssFix | HeadingSample | AttitudeSample | RangeSample
 
 LIVE_BOTTOM_REFRESH_S = 2.0

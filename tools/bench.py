@@ -176,9 +176,6 @@ class RecordedFeed:
         for sample in samples:
             yield sample.time, sample
 
-    def close(self) -> None:
-        pass
-
 
 class SimulatedFeed:
     """A simulated survey's events from a process of its own (spawned: the simulator's

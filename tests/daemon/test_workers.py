@@ -20,6 +20,7 @@ from daemon.workers import ProcessFront, ProcessPool, live_front
 from drivers.oculus.logfile import iter_pings
 from mapping.pipeline import Mode, map_survey
 from mapping.samples import Ping
+from mapping.stream_front import InlineFront
 from mapping.streaming import PoseUpdate, StreamingEngine, TileUpdate
 from tools.sim import simulate
 from tools.sim.stream import survey_events
@@ -95,7 +96,8 @@ def test_the_live_map_is_the_same_to_the_bit_with_the_front_in_a_worker(
     survey: Survey = request.getfixturevalue(name)
     inline = _run(survey, workers=0)
     worker = _run(survey, workers=1)
-    assert isinstance(inline.engine.front, type(inline.engine.front))
+    assert isinstance(inline.engine.front, InlineFront)
+    assert isinstance(worker.engine.front, ProcessFront)
     assert inline.engine.stats.frames_mapped > 250
     assert inline.engine.stats.resolves >= 1  # the re-solve and its redraws are in it
     # Every pose update, every tile published, in the same order, to the bit.
