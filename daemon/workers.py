@@ -26,6 +26,7 @@ from concurrent.futures.process import BrokenProcessPool
 from itertools import islice
 from typing import Any, Generic, TypeVar
 
+from daemon.channel import Channel
 from mapping.frames import SonarMount
 from mapping.stream_front import Front, FrontJob, FrontResult
 from mapping.stream_params import StreamingParams
@@ -73,11 +74,12 @@ def _front_main(
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's own signals are its own
     cv2.setNumThreads(threads)
     jobs: queue.SimpleQueue[FrontJob | None] = queue.SimpleQueue()
+    channel = Channel(connection)
 
     def take_jobs() -> None:
         while True:
             try:
-                job = connection.recv()
+                job = channel.recv()
             except (EOFError, OSError):
                 job = None
             jobs.put(job)
@@ -91,7 +93,7 @@ def _front_main(
         if job is None:
             return
         try:
-            connection.send(front.run(job))
+            channel.send(front.run(job))
         except (BrokenPipeError, ConnectionResetError, OSError):
             return
 
@@ -117,7 +119,7 @@ class ProcessFront:
         self._waiting: deque[FrontJob] = deque()
         """Jobs sent whose results have not been taken, in order."""
         self._process: Any = None
-        self._connection: multiprocessing.connection.Connection | None = None
+        self._connection: Channel | None = None
         self._start()
 
     @property
@@ -135,7 +137,7 @@ class ProcessFront:
         )
         process.start()
         child.close()
-        self._process, self._connection = process, parent
+        self._process, self._connection = process, Channel(parent)
 
     def _restart(self) -> None:
         """The worker died: say so, start another, and give it the jobs not answered."""

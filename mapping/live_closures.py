@@ -27,6 +27,13 @@ Robustness first: seabeds repeat (quadrat rows and farm racks a metre apart, rip
    them (Mangelson et al., ICRA 2018, doi:10.1109/ICRA.2018.8460217, pairwise
    consistency, applied as the closures arrive);
 3. later closures of a confirmed pair are applied one by one, each still gated.
+
+A closure's registration is a pure task (``ClosureJob``, run by ``ClosureRegistrar``):
+``propose`` chooses the keyframe and the search for frame j from the live state, the
+registration runs wherever the engine puts it (its front worker, with the pings that
+follow), and ``conclude`` gates and applies it a fixed number of frames later against the
+anchor as it is then, the measurement's covariance widened by the chain's drift since
+frame j (``LiveAnchor.drift_covariance``). ``consider`` does all three at once.
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.closures import world_rotation
-from mapping.fmt import FmtRegistrar, PreparedFrame
+from mapping.fmt import FmtParams, FmtRegistrar, PreparedFrame, Registration, cached_registrar
 from mapping.frames import SonarMount
 from mapping.grid import SonarGrid
 from mapping.live_anchor import LiveAnchor
@@ -157,6 +164,59 @@ class Closure:
         d = self.measured - self.keyframe_correction
         d[2] = turn(float(d[2]))
         return d
+
+
+@dataclass
+class _Attempt:
+    """A closure proposed for frame ``index`` whose registration is out."""
+
+    index: int
+    time: float
+    sonar: Array
+    chain_xy: Array
+    chain_heading: float
+    keyframe: Keyframe
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureJob:
+    """A closure's registration, a pure task: the keyframe's image (uint8) against frame
+    ``index``'s, both on the blending grid ``grid`` with the fixed fan ``mask``, from the
+    ``prior`` the live poses give (sonar ``index`` in sonar ``keyframe``), each peak
+    weighed with the anchor's predicted ``sigma_m``, ``hypotheses`` peaks kept."""
+
+    index: int
+    keyframe: int
+    keyframe_image: npt.NDArray[np.uint8]
+    image: npt.NDArray[np.float32]
+    grid: SonarGrid
+    mask: npt.NDArray[np.bool_]
+    fmt: FmtParams
+    prior: RelativePose
+    sigma_m: float
+    hypotheses: int
+
+
+class ClosureRegistrar:
+    """Runs ``ClosureJob``s, keeping the last two keyframes prepared (successive attempts
+    often use the same keyframe; each holds its sector spectra, a few MB)."""
+
+    def __init__(self) -> None:
+        self._prepared: dict[tuple[int, SonarGrid], PreparedFrame] = {}
+
+    def run(self, job: ClosureJob) -> Registration:
+        registrar = cached_registrar(job.grid, job.mask, job.fmt)
+        key = (job.keyframe, job.grid)
+        prepared = self._prepared.get(key)
+        if prepared is None:
+            image = job.keyframe_image.astype(np.float32) * np.float32(1 / 255)
+            prepared = registrar.prepare(image)
+            if len(self._prepared) >= 2:
+                self._prepared.pop(next(iter(self._prepared)))
+            self._prepared[key] = prepared
+        return registrar.register_far(
+            prepared, job.image, job.prior, prior_sigma_m=job.sigma_m, n_hypotheses=job.hypotheses
+        )
 
 
 @dataclass
@@ -326,7 +386,13 @@ class LiveClosures:
         """Keep every hypothesis and applied closure in ``stats.log`` (diagnostics)."""
         self._last_attempt = -math.inf
         self._last_applied = -math.inf  # time_j of the last closure applied
-        self._prepared: dict[int, PreparedFrame] = {}
+        self._attempts: dict[int, _Attempt] = {}
+        """Closures proposed whose registrations are out, by frame."""
+        self._stale = np.zeros((3, 3))
+        """The chain's drift between the frame concluded and now (added to its
+        measurements' covariance)."""
+        self.registrar = ClosureRegistrar()
+        """Runs the registrations of ``consider`` (``propose`` hands them out instead)."""
         self._pending: list[Closure] = []
         self._doubts: list[tuple[float, float]] = []  # (time_i, time_j) of ambiguities
         self._pairs: list[_Pair] = []
@@ -394,43 +460,82 @@ class LiveClosures:
         anchor: LiveAnchor,
     ) -> bool:
         """Try a closure for accepted frame ``index`` at its live ``pose`` (the chain at
-        ``chain_xy``, ``chain_heading``, plus the anchor's correction); apply what is
-        confirmed to ``anchor``. True when the anchor was updated."""
+        ``chain_xy``, ``chain_heading``, plus the anchor's correction) at once: propose,
+        register here, conclude. True when the anchor was updated."""
+        job = self.propose(
+            index, time, pose, chain_xy, chain_heading, image,
+            registrar.grid, registrar.mask, registrar.params, anchor,
+        )  # fmt: skip
+        if job is None:
+            return False
+        return self.conclude(index, self.registrar.run(job), chain_xy, time, anchor)
+
+    def propose(
+        self,
+        index: int,
+        time: float,
+        pose: Array,
+        chain_xy: Array,
+        chain_heading: float,
+        image: npt.NDArray[np.float32],
+        grid: SonarGrid,
+        mask: npt.NDArray[np.bool_],
+        fmt: FmtParams,
+        anchor: LiveAnchor,
+    ) -> ClosureJob | None:
+        """Choose a keyframe to close accepted frame ``index`` against (its ``image`` on
+        the blending ``grid``, fixed fan ``mask``) and the registration's search, or None
+        (none near enough, or too soon after the last attempt). The registration's answer
+        goes to ``conclude``."""
         p = self.params
         if not p.enabled or time - self._last_attempt < p.attempt_every_s:
-            return False
+            return None
         sonar = self.mount.sonar_pose(pose)
         found = self.store.best(sonar, time)
         if found is None:
-            return False
+            return None
         keyframe, _ = found
-        if keyframe.grid != registrar.grid:
-            return False
+        if keyframe.grid != grid:
+            return None
         self._last_attempt = time
         self.stats.attempts += 1
         self._pairs = [pair for pair in self._pairs if time - pair.last.time_j <= p.pass_gap_s]
-        pair = self._pair_of(keyframe.time, time)
-        if pair is not None:
-            # In a confirmed pair the map's own bend between its last keyframe and this
-            # one is known: the live correction is predicted to follow it.
-            bend = _wrapped(keyframe.correction - pair.last.keyframe_correction)
-            unknown = np.zeros((3, 3))
-        else:
-            # A new pair: the map there was drawn with another correction than the live
-            # one (the anchor moved since, with the GNSS and other closures), and the
-            # chain drifted since; how much of the difference is which is unknown.
-            bend = np.zeros(3)
-            ce, cn = anchor.correction
-            moved = _wrapped(keyframe.correction - np.array([ce, cn, anchor.heading]))
-            path = chain_xy - (keyframe.pose[:2] - keyframe.correction[:2])
-            unknown = np.outer(moved, moved) + anchor.drift_covariance(
-                time - keyframe.time, (float(path[0]), float(path[1]))
-            )
-            unknown[:2, :2] += p.new_pair_sigma_m**2 * np.eye(2)
-        closure = self._register(
-            index, time, sonar, chain_xy, chain_heading, image, keyframe, registrar, anchor,
-            bend, unknown,
+        _, unknown = self._expected(keyframe, time, chain_xy, anchor)
+        predicted = anchor.correction_covariance() + unknown
+        sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
+        sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
+        self._attempts[index] = _Attempt(
+            index, time, sonar.copy(), np.asarray(chain_xy, float).copy(), chain_heading, keyframe
+        )
+        return ClosureJob(
+            index, keyframe.index, keyframe.image, image, grid, mask, fmt,
+            relative_pose(keyframe.sonar, sonar), sigma, p.hypotheses,
         )  # fmt: skip
+
+    def conclude(
+        self,
+        index: int,
+        registration: Registration,
+        chain_xy: Array,
+        now: float,
+        anchor: LiveAnchor,
+    ) -> bool:
+        """The registration proposed for frame ``index`` came back: gate it on the anchor
+        as it is ``now`` (the chain then at ``chain_xy``), the measurement widened by the
+        chain's drift since frame ``index``; apply what is confirmed. True when the anchor
+        was updated."""
+        attempt = self._attempts.pop(index, None)
+        if attempt is None:
+            return False
+        p = self.params
+        time, keyframe = attempt.time, attempt.keyframe
+        path = np.asarray(chain_xy, float) - attempt.chain_xy
+        drift = (float(path[0]), float(path[1]))
+        self._stale = anchor.drift_covariance(max(now - time, 0.0), drift)
+        self._pairs = [pair for pair in self._pairs if time - pair.last.time_j <= p.pass_gap_s]
+        pair = self._pair_of(keyframe.time, time)
+        bend, unknown = self._expected(keyframe, time, attempt.chain_xy, anchor)
+        closure = self._register(attempt, registration, anchor, bend, unknown)
         if closure is None:
             if pair is not None:
                 pair.misses += 1
@@ -445,45 +550,43 @@ class LiveClosures:
             return True
         return self._confirm(closure, anchor, unknown)
 
-    def _prepare(self, keyframe: Keyframe, registrar: FmtRegistrar) -> PreparedFrame:
-        prepared = self._prepared.get(keyframe.index)
-        if prepared is None:
-            prepared = registrar.prepare(keyframe.image.astype(np.float32) * np.float32(1 / 255))
-            # Successive attempts often use the same keyframe: keep the last two (with
-            # their sector spectra, a few MB each).
-            if len(self._prepared) >= 2:
-                self._prepared.pop(next(iter(self._prepared)))
-            self._prepared[keyframe.index] = prepared
-        return prepared
+    def _expected(
+        self, keyframe: Keyframe, time: float, chain_xy: Array, anchor: LiveAnchor
+    ) -> tuple[Array, Array]:
+        """What the anchor is predicted to measure at frame ``time`` (the chain at
+        ``chain_xy``) beyond its own correction: the map's known ``bend`` between a
+        confirmed pair's last keyframe and this one, and what is ``unknown`` (3 x 3)."""
+        pair = self._pair_of(keyframe.time, time)
+        if pair is not None:
+            # In a confirmed pair the map's own bend between its last keyframe and this
+            # one is known: the live correction is predicted to follow it.
+            return _wrapped(keyframe.correction - pair.last.keyframe_correction), np.zeros((3, 3))
+        # A new pair: the map there was drawn with another correction than the live
+        # one (the anchor moved since, with the GNSS and other closures), and the
+        # chain drifted since; how much of the difference is which is unknown.
+        ce, cn = anchor.correction
+        moved = _wrapped(keyframe.correction - np.array([ce, cn, anchor.heading]))
+        path = chain_xy - (keyframe.pose[:2] - keyframe.correction[:2])
+        unknown = np.outer(moved, moved) + anchor.drift_covariance(
+            time - keyframe.time, (float(path[0]), float(path[1]))
+        )
+        unknown[:2, :2] += self.params.new_pair_sigma_m**2 * np.eye(2)
+        return np.zeros(3), unknown
 
     def _register(
         self,
-        index: int,
-        time: float,
-        sonar: Array,
-        chain_xy: Array,
-        chain_heading: float,
-        image: npt.NDArray[np.float32],
-        keyframe: Keyframe,
-        registrar: FmtRegistrar,
+        attempt: _Attempt,
+        reg: Registration,
         anchor: LiveAnchor,
         bend: Array,
         unknown: Array,
     ) -> Closure | None:
-        """Register against the keyframe, gate each hypothesis on the anchor's prediction
-        (moved by the map's known ``bend``, widened by what is ``unknown`` between the
-        keyframe and now), refuse ambiguity; the chosen measurement."""
+        """Gate each hypothesis of the registration against the keyframe on the anchor's
+        prediction (moved by the map's known ``bend``, widened by what is ``unknown``
+        between the keyframe and now), refuse ambiguity; the chosen measurement."""
         p = self.params
-        predicted = anchor.correction_covariance() + unknown
-        sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
-        sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
-        reg = registrar.register_far(
-            self._prepare(keyframe, registrar),
-            image,
-            relative_pose(keyframe.sonar, sonar),
-            prior_sigma_m=sigma,
-            n_hypotheses=p.hypotheses,
-        )
+        index, time, sonar, keyframe = attempt.index, attempt.time, attempt.sonar, attempt.keyframe
+        chain_xy, chain_heading = attempt.chain_xy, attempt.chain_heading
         rotation = world_rotation(float(keyframe.pose[2]))
         turned = abs(turn(float(sonar[2] - keyframe.sonar[2])))
         floor = np.diag([p.sigma_floor_m**2] * 2 + [math.radians(p.sigma_floor_deg) ** 2])
@@ -506,7 +609,7 @@ class LiveClosures:
                 )
             )
             covariance = rotation @ (raw + floor) @ rotation.T + keyframe_cov
-            nu, s = anchor.closure_innovation(measured - bend, covariance + unknown)
+            nu, s = anchor.closure_innovation(measured - bend, covariance + unknown + self._stale)
             d2 = float(nu @ np.linalg.solve(s, nu))
             closure = Closure(
                 keyframe.index, index, keyframe.time, time, vehicle, measured, covariance,
@@ -627,8 +730,9 @@ class LiveClosures:
         return True
 
     def _apply(self, closure: Closure, anchor: LiveAnchor) -> None:
+        covariance = closure.covariance + self._stale
         if self.log_attempts:
-            nu, s = anchor.closure_innovation(closure.measured, closure.covariance)
+            nu, s = anchor.closure_innovation(closure.measured, covariance)
             self.stats.log.append(
                 {
                     "applied": 1.0,
@@ -640,6 +744,6 @@ class LiveClosures:
                     "d2": float(nu @ np.linalg.solve(s, nu)),
                 }
             )
-        anchor.update_closure(closure.measured, closure.covariance)
+        anchor.update_closure(closure.measured, covariance)
         self.stats.applied += 1
         self._last_applied = max(self._last_applied, closure.time_j)

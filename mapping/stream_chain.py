@@ -24,18 +24,19 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from mapping.fmt import FmtRegistrar
+from mapping.fmt import Registration
 from mapping.frames import SonarMount
 from mapping.fusion import compass_basis
 from mapping.grid import SonarGrid
 from mapping.live_anchor import LiveAnchor
-from mapping.live_closures import Closure, LiveClosures
+from mapping.live_closures import Closure, ClosureJob, LiveClosures
 from mapping.live_resolve import Bridge, DrawnFrame
 from mapping.posegraph import Edge
 from mapping.se2 import to_body, to_world, turn
@@ -165,7 +166,6 @@ class LiveChain:
         self._rate: ChainRate | None = None
         """The chain's rate the front measured, as of the frame last taken."""
         self._shape: FanShape | None = None
-        self._fine: FmtRegistrar | None = None
         self.anchor = LiveAnchor(params.anchor)
         self.closures: LiveClosures | None = None  # once the sonar's geometry is known
         # Per chained frame (dropped when it becomes final, but the last): its chained
@@ -197,7 +197,6 @@ class LiveChain:
         self._rate = result.rate
         if result.shape is not None:
             self._shape = result.shape
-            self._fine = None
 
     @property
     def shape(self) -> FanShape:
@@ -209,15 +208,6 @@ class LiveChain:
     def grid(self) -> SonarGrid:
         """The blending grid of the frames taken last."""
         return self.shape.grid
-
-    @property
-    def fine_registrar(self) -> FmtRegistrar:
-        """A registrar on the blending grid, for the few registrations that need every
-        bit of detail (loop closures between lanes)."""
-        if self._fine is None:
-            shape = self.shape
-            self._fine = FmtRegistrar(shape.grid, shape.mask, self.params.pipeline.fmt)
-        return self._fine
 
     def link(self, index: int, time: float, at: PingNavigation, edge: Edge | None) -> Bridge | None:
         """Chain an accepted frame onto the previous one: by its registration, else by the
@@ -328,10 +318,20 @@ class LiveChain:
         forward, starboard = to_body(dx, dy, self._heading[last] + self.anchor.heading)
         return float(forward), float(starboard), float(dyaw)
 
-    def close_loop(self, index: int, time: float, image: npt.NDArray[np.float32]) -> list[Closure]:
-        """Register the frame against a keyframe of an earlier pass when one overlaps
-        (``mapping.live_closures``); a confirmed closure updates the anchor. Returns the
-        closures the anchor took (for the live re-solve)."""
+    def close_loop(
+        self,
+        index: int,
+        time: float,
+        image: npt.NDArray[np.float32],
+        registered: Sequence[tuple[int, Registration]] = (),
+    ) -> tuple[list[Closure], ClosureJob | None]:
+        """The closures' registrations ``registered`` since the last accepted frame (frame,
+        registration) are gated and applied (``mapping.live_closures``: a confirmed
+        closure updates the anchor); then this frame may be registered against a
+        keyframe of an earlier pass that overlaps: the job for that, to run wherever the
+        engine puts it and come back here. Returns the closures the anchor took (for the
+        live re-solve) and the job (or None)."""
+        job = None
         if self.params.closures.enabled:
             if self.closures is None:
                 shape = self.shape
@@ -341,22 +341,20 @@ class LiveChain:
                     (shape.min_range_m, shape.max_range_m),
                     shape.half_width_rad,
                 )
-            self.closures.consider(
-                index,
-                time,
-                self.live_pose(index),
-                self._xy[index],
-                self._heading[index],
-                image,
-                self.fine_registrar,
-                self.anchor,
-            )
+            xy = self._xy[index]
+            for frame, registration in registered:
+                self.closures.conclude(frame, registration, xy, time, self.anchor)
+            shape = self.shape
+            job = self.closures.propose(
+                index, time, self.live_pose(index), xy, self._heading[index], image,
+                shape.grid, shape.mask, self.params.pipeline.fmt, self.anchor,
+            )  # fmt: skip
         taken: list[Closure] = []
         if self.closures is not None and self.closures.taken:
             taken = list(self.closures.taken)
             self.closures.taken.clear()
         self._bends_at[index] = self.anchor.bends.copy()
-        return taken
+        return taken, job
 
     # -- what the chain says ---------------------------------------------------------------
     def live_pose(self, k: int) -> Array:

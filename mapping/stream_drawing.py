@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from mapping.blend import make_scorer
+from mapping.blend import FrameScorer
 from mapping.frames import SonarMount
 from mapping.geo import LocalFrame
 from mapping.grid import SonarGrid
@@ -88,6 +88,13 @@ class RedrawPass:
     rendered: list[RenderedTile]
 
 
+def drawn_layers(scorer: FrameScorer, frame: SonarFrame) -> npt.NDArray[np.float32]:
+    """A preprocessed frame as the tiles draw it: its image, its blending score
+    (``scorer``, ``mapping.blend``) and its mask, one (rows, cols, 3) stack."""
+    score = scorer(frame.image, frame.mask, frame.weight, frame.fan_weight)
+    return frame_layers(frame.image, score, frame.mask)
+
+
 def fan_moved(sonar: Array, was: Array) -> float:
     """How far a fan moved from sonar pose ``was`` to ``sonar`` (x, y, yaw): its apex,
     plus a yaw error turning the far edge of the fan (5 m away) the most."""
@@ -106,7 +113,6 @@ class LiveDrawing:
         self.mount = mount
         self.params = params
         p = params.pipeline
-        self.scorer = make_scorer(p.blend)
         memory = None if params.tile_memory_mb is None else int(params.tile_memory_mb * 2**20)
         blend = p.blend
         if params.live_candidates is not None:
@@ -135,16 +141,16 @@ class LiveDrawing:
         self,
         index: int,
         time: float,
-        frame: SonarFrame,
+        layers: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.bool_],
         grid: SonarGrid,
         sonar: Array,
         local: LocalFrame | None,
     ) -> None:
-        """Blend a new frame at once at sonar pose ``sonar`` (local), and keep it live."""
-        score = self.scorer(frame.image, frame.mask, frame.weight, frame.fan_weight)
-        layers = frame_layers(frame.image, score, frame.mask)
-        touched = self._insert(index, layers, frame.mask, grid, sonar, time, local)
-        self.live[index] = LiveImage(index, time, layers, frame.mask, grid, touched, sonar)
+        """Blend a new frame (``drawn_layers``, its ``mask``) at once at sonar pose
+        ``sonar`` (local), and keep it live."""
+        touched = self._insert(index, layers, mask, grid, sonar, time, local)
+        self.live[index] = LiveImage(index, time, layers, mask, grid, touched, sonar)
 
     def reblend(
         self, poses: Sequence[Array], leaving: Container[int], local: LocalFrame | None

@@ -7,7 +7,9 @@ ping order. Everything it needs of a ping comes with the ping (``FrontJob``: the
 filter's pose there and the attitude and seabed to project it with), and everything the
 later stages need comes back with its result (``FrontResult``: the blending frame, the
 registration's outcome, the chain's rate, and the fan's shape when it changed), so that
-the front can run where the rest is not: in the engine's own process (``InlineFront``),
+the front can run where the rest is not, and the live loop closures' registrations
+(``mapping.live_closures.ClosureJob``, pure tasks) ride along with the pings, each
+answered with the result of the ping it came with: in the engine's own process (``InlineFront``),
 or in a worker process of its own (``daemon.workers``) while the engine chains, draws
 and re-solves the frames before it. Its results are taken in submission order, never
 in order of arrival, so the map is the same wherever it runs.
@@ -23,11 +25,15 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from mapping.blend import make_scorer
+from mapping.fmt import Registration
 from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.grid import SonarGrid
+from mapping.live_closures import ClosureJob, ClosureRegistrar
 from mapping.polar import Attitude
-from mapping.preprocess import Preprocessor, SonarFrame
+from mapping.preprocess import Preprocessor
 from mapping.samples import Ping
+from mapping.stream_drawing import drawn_layers
 from mapping.stream_navigation import PingNavigation
 
 if TYPE_CHECKING:
@@ -37,8 +43,6 @@ ChainRate = tuple[tuple[float, float, float], float, float]
 """The chain's velocity and turn rate (forward, starboard m/s, yaw rad/s), the time of the
 last registered step it was measured with, and the span it covers
 (``LocalRegistration.rate``)."""
-
-_NO_COARSE = np.zeros((0, 0), np.float32)
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,6 +54,8 @@ class FrontJob:
     at: PingNavigation
     attitude: Attitude | None
     """Roll, pitch and seabed the ping is projected with (``NavigationRecord.ping_attitude``)."""
+    closures: tuple[ClosureJob, ...] = ()
+    """Loop closures' registrations to run after this ping's."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,17 +72,27 @@ class FanShape:
 
 @dataclass(slots=True)
 class FrontResult:
-    """A ping preprocessed and registered: its frame on the blending grid (the registration
-    grid's copy is left behind), the outcome, the chain's rate after it, and the fan's
-    shape when this ping's differs from the previous result's (else None)."""
+    """A ping preprocessed and registered: its frame on the blending grid as the tiles draw
+    it (``mapping.stream_drawing.drawn_layers``: image, blending score, mask) and its
+    mask, the outcome, the chain's rate after it, and the fan's shape when this ping's
+    differs from the previous result's (else None)."""
 
     index: int
-    frame: SonarFrame
+    layers: npt.NDArray[np.float32]
+    mask: npt.NDArray[np.bool_]
     outcome: FrameOutcome
     rate: ChainRate | None
     shape: FanShape | None
     seconds: dict[str, float]
-    """Time the front spent on it, per stage (``preprocess``, ``registration``)."""
+    """Time the front spent on it, per stage (``preprocess``, ``registration``,
+    ``closure registration``)."""
+    closures: tuple[tuple[int, Registration], ...] = ()
+    """The job's closure registrations answered (the frame each was proposed for)."""
+
+    @property
+    def image(self) -> npt.NDArray[np.float32]:
+        """The frame's image on the blending grid (a view of the first layer)."""
+        return self.layers[..., 0]
 
 
 def rate_at(
@@ -120,6 +136,8 @@ class Front:
             params.live_yaw_from_gyro,
         )
         self._shape_of: Preprocessor | None = None
+        self.closures = ClosureRegistrar()
+        self.scorer = make_scorer(p.blend)
 
     def run(self, job: FrontJob) -> FrontResult:
         started = time.perf_counter()
@@ -136,13 +154,25 @@ class Front:
         if preprocessor is not None and preprocessor is not self._shape_of:
             shape = fan_shape(preprocessor)
             self._shape_of = preprocessor
+        layers = drawn_layers(self.scorer, frame)
+        scored = time.perf_counter()
+        seconds = {
+            "preprocess": preprocessed - started,
+            "registration": registered - preprocessed,
+            "scoring": scored - registered,
+        }
+        closures = tuple((closure.index, self.closures.run(closure)) for closure in job.closures)
+        if job.closures:
+            seconds["closure registration"] = time.perf_counter() - scored
         return FrontResult(
             job.index,
-            replace(frame, coarse=_NO_COARSE, coarse_mask=None),
+            layers,
+            frame.mask,
             outcome,
             self.local.rate,
             shape,
-            {"preprocess": preprocessed - started, "registration": registered - preprocessed},
+            seconds,
+            closures,
         )
 
 

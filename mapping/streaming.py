@@ -58,13 +58,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from mapping.blend import FrameScorer
 from mapping.bottom import BottomModel
 from mapping.ekf import NavFilter
+from mapping.fmt import Registration
 from mapping.frames import FrameOutcome, LocalRegistration, SonarMount
 from mapping.geo import LocalFrame
 from mapping.live_anchor import LiveAnchor
-from mapping.live_closures import LiveClosures
+from mapping.live_closures import ClosureJob, LiveClosures
 from mapping.live_resolve import DrawnFrame, LiveResolver
 from mapping.mosaic import TileKey
 from mapping.pipeline import (
@@ -221,6 +221,10 @@ class StreamingEngine:
         it was built (``NavigationRecord.build_bottom``, over the live poses then): a ping
         is projected over the newest built ``front_depth`` frames before it, the same
         whenever the front asks."""
+        self._closure_jobs: dict[int, list[ClosureJob]] = {}
+        """Loop closures' registrations to hand to the front with the ping of this index."""
+        self._registered: list[tuple[int, Registration]] = []
+        """Closures' registrations come back from the front, for the next accepted frame."""
 
     # -- the stages' parts others read -----------------------------------------------------
     @property
@@ -258,11 +262,6 @@ class StreamingEngine:
     def drawn_frame(self) -> DrawnFrame:
         """The live map's frame against the GNSS's (``mapping.live_resolve.align``)."""
         return self.window.drawn_frame
-
-    @property
-    def scorer(self) -> FrameScorer:
-        """Each new frame's blending score."""
-        return self.drawing.scorer
 
     @property
     def tiles(self) -> TileStore:
@@ -352,7 +351,8 @@ class StreamingEngine:
         at = self.navigation.at_ping(ping)
         attitude = self.navigation.attitude_over(ping.time, self._bottom_before(upto))
         self.stats.time("ekf", started)
-        self.front.submit(FrontJob(index, ping, at, attitude))
+        closures = tuple(self._closure_jobs.pop(index, ()))
+        self.front.submit(FrontJob(index, ping, at, attitude, closures))
         sent = clock.perf_counter()
         self.sent_at.append(sent)
         self._queue.append(_Sent(index, ping.time, at, sent, self.navigation.held))
@@ -397,11 +397,12 @@ class StreamingEngine:
         if result.index != index:
             raise RuntimeError(f"the front returned frame {result.index} for frame {index}")
         self.chain.take_front(result)
+        self._registered.extend(result.closures)
         for stage, seconds in result.seconds.items():
             stats.stage_s[stage] = stats.stage_s.get(stage, 0.0) + seconds
         started = clock.perf_counter()
         at = sent.at
-        sonar_frame, outcome = result.frame, result.outcome
+        outcome = result.outcome
         self.times.append(sent.time)
         if self.params.reuse_registrations:
             self.outcomes.append(outcome)
@@ -419,13 +420,22 @@ class StreamingEngine:
         if outcome.edge is not None:
             self.edges.append(outcome.edge)
         started = stats.time("blending", started)
-        self.window.take_closures(self.chain.close_loop(index, sent.time, sonar_frame.image))
+        taken, job = self.chain.close_loop(index, sent.time, result.image, self._registered)
+        self._registered.clear()
+        if job is not None:
+            # Registered with the ping ``front_depth + 1`` on: the next one not yet
+            # handed to the front, wherever it runs and however far behind it the stages
+            # after it are; applied when that ping's result comes back.
+            self._closure_jobs.setdefault(index + self.params.front_depth + 1, []).append(job)
+        self.window.take_closures(taken)
         started = stats.time("closures", started)
         pose = self.chain.live_pose(index)
         self.poses.append(pose)
         # Blend at once at the chained pose.
         sonar = self.mount.sonar_pose(pose)
-        self.drawing.draw(index, sent.time, sonar_frame, self.chain.grid, sonar, self.frame)
+        self.drawing.draw(
+            index, sent.time, result.layers, result.mask, self.chain.grid, sonar, self.frame
+        )
         stats.time("blending", started)
         self._emit_pose(index, final=False)
         if self.window.solve_due:

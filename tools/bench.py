@@ -506,7 +506,9 @@ def run_bench(
         final_pass_s=final_s,
         range_m=range_m,
         workers=workers if front is not None else 0,
-        worker_stages=("preprocess", "registration") if front is not None else (),
+        worker_stages=(
+            ("preprocess", "registration", "closure registration") if front is not None else ()
+        ),
         pss_samples=pss,
         streamed=streamed,
     )

@@ -14,6 +14,7 @@ import numpy.typing as npt
 import pytest
 
 from daemon.replay import mount_from_config, pipeline_params
+from mapping.fmt import Registration
 from mapping.fusion import FusionParams
 from mapping.live_resolve import Bridge, DrawnFrame, LiveResolver, ResolveParams
 from mapping.posegraph import Edge
@@ -111,6 +112,7 @@ def _chain(survey: Survey, unregistered: range = range(0)) -> Chained:
     chain = LiveChain(mount, params)
     front = Front(mount, params)
     frames = []
+    registered: list[tuple[int, Registration]] = []
     for sample in survey.samples:
         if not isinstance(sample, Ping):
             fix = record.take(sample).chain_fix
@@ -122,14 +124,15 @@ def _chain(survey: Survey, unregistered: range = range(0)) -> Chained:
         attitude = record.ping_attitude(sample.time, times, poses)
         result = front.run(FrontJob(k, sample, at, attitude))
         chain.take_front(result)
-        image, outcome = result.frame, result.outcome
+        outcome = result.outcome
         times.append(sample.time)
         if not outcome.accepted:
             poses.append(np.full(3, np.nan))
             continue
         edge = None if k in unregistered else outcome.edge
         bridge = chain.link(k, sample.time, at, edge)
-        chain.close_loop(k, sample.time, image.image)
+        _, job = chain.close_loop(k, sample.time, result.image, registered)
+        registered = [] if job is None else [(job.index, front.closures.run(job))]
         poses.append(chain.live_pose(k))
         frames.append((k, poses[-1], bridge, edge))
     return Chained(survey, record, chain, frames, times, front, poses)

@@ -13,18 +13,20 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from mapping.blend import BlendParams, make_scorer
 from mapping.frames import SonarMount
 from mapping.geo import LocalFrame
 from mapping.grid import SonarGrid
 from mapping.live_resolve import Drawn, pack
 from mapping.preprocess import SonarFrame
-from mapping.stream_drawing import LiveDrawing, RenderedTile, fan_moved
+from mapping.stream_drawing import LiveDrawing, RenderedTile, drawn_layers, fan_moved
 from mapping.streaming import StreamingParams
 from tests.mapping import synth
 
 Array = npt.NDArray[np.float64]
 MOUNT = SonarMount()
 LOCAL = LocalFrame.around(38.3, -76.5)  # the local frame: (x, y) on the synthetic seabed
+SCORER = make_scorer(BlendParams())
 
 
 @functools.cache
@@ -54,7 +56,9 @@ def _drawing(**kw: object) -> LiveDrawing:
 
 def _draw(drawing: LiveDrawing, k: int, pose: Array, time: float) -> None:
     _, grid, _ = _scene()
-    drawing.draw(k, time, _frame(pose), grid, MOUNT.sonar_pose(pose), LOCAL)
+    frame = _frame(pose)
+    layers = drawn_layers(SCORER, frame)
+    drawing.draw(k, time, layers, frame.mask, grid, MOUNT.sonar_pose(pose), LOCAL)
 
 
 def _frames_in(rendered: list[RenderedTile]) -> set[int]:

@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.replay import mount_from_config, pipeline_params
+from mapping.fmt import Registration
 from mapping.frames import FrameOutcome, SonarMount
 from mapping.live_closures import Closure
 from mapping.live_resolve import ResolveParams, pack
@@ -24,7 +25,6 @@ from mapping.stream_navigation import NavigationRecord
 from mapping.stream_window import LiveWindow
 from mapping.streaming import StreamingParams
 from mapping.survey_graph import registration_sqrt_info
-from mapping.tiles import frame_layers
 from tests.mapping.test_stream_navigation import quadrats
 
 Array = npt.NDArray[np.float64]
@@ -123,6 +123,7 @@ def _feed(*params: StreamingParams) -> Fed:
     images, infos = {}, {}
     graph = first.pipeline.single_stage.graph
     last_fix = -math.inf
+    registered: list[tuple[int, Registration]] = []
     for sample in survey.samples:
         if not isinstance(sample, Ping):
             measured = record.take(sample)
@@ -138,7 +139,7 @@ def _feed(*params: StreamingParams) -> Fed:
         attitude = record.ping_attitude(sample.time, times, poses)
         result = front.run(FrontJob(k, sample, at, attitude))
         chain.take_front(result)
-        frame, outcome = result.frame, result.outcome
+        outcome = result.outcome
         times.append(sample.time)
         if not outcome.accepted:
             poses.append(np.full(3, np.nan))
@@ -150,13 +151,15 @@ def _feed(*params: StreamingParams) -> Fed:
             infos[k] = registration_sqrt_info(outcome, mount, graph, dt)
         for window in windows:
             window.add_frame(k, sample.time, at.prior, outcome, bridge, times)
-        taken = chain.close_loop(k, sample.time, frame.image)
+        # A closure's registration comes back with the next accepted frame (the engine's
+        # come back with the ping ``front_depth + 1`` on).
+        taken, job = chain.close_loop(k, sample.time, result.image, registered)
+        registered = [] if job is None else [(job.index, front.closures.run(job))]
         for window in windows:
             window.take_closures(taken)
         poses.append(chain.live_pose(k))
-        layers = frame_layers(frame.image, frame.weight, frame.mask)
         images[k] = LiveImage(
-            k, sample.time, layers, frame.mask, chain.grid, [], mount.sonar_pose(poses[-1])
+            k, sample.time, result.layers, result.mask, chain.grid, [], mount.sonar_pose(poses[-1])
         )
     return Fed(windows, chain, mount, times, poses, images, infos, last_fix)
 
