@@ -9,8 +9,9 @@ through the sonar's lever arm and mount yaw (``SonarMount``).
 
 from __future__ import annotations
 
+import hashlib
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -219,13 +220,48 @@ class PairJob:
     fmt: FmtParams
 
 
+_PREPARED: OrderedDict[tuple[object, ...], PreparedFrame] = OrderedDict()
+_PREPARED_BY: list[FmtRegistrar | None] = [None]
+PREPARED_KEPT = 6
+"""Frames a process keeps prepared for ``register_pair_job`` (a few MB each): a frame
+registered as the later of a pair is the earlier one of the pairs after it once it is
+their keyframe, and a keyframe serves several frames in a row."""
+
+
+def _prepared(
+    registrar: FmtRegistrar,
+    index: int,
+    coarse: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.bool_] | None,
+) -> PreparedFrame:
+    """Frame ``index`` prepared, from this process's last few when the same frame (its
+    pixels' digest) on the same registrar was prepared here before."""
+    digest = hashlib.blake2b(np.ascontiguousarray(coarse).data, digest_size=16)
+    if mask is not None:
+        digest.update(np.ascontiguousarray(mask).data)
+    if _PREPARED_BY[0] is not registrar:  # another grid, fan or settings
+        _PREPARED.clear()
+        _PREPARED_BY[0] = registrar
+    key = (index, coarse.shape, digest.digest())
+    prepared = _PREPARED.get(key)
+    if prepared is not None:
+        _PREPARED.move_to_end(key)
+        return prepared
+    prepared = registrar.prepare(coarse, mask)
+    _PREPARED[key] = prepared
+    while len(_PREPARED) > PREPARED_KEPT:
+        _PREPARED.popitem(last=False)
+    return prepared
+
+
 def register_pair_job(job: PairJob) -> Registration:
     """The registration ``job`` asks for (``PairJob``), on a registrar this process keeps
-    for the grid."""
+    for the grid; the frames prepared once in this process serve the pairs after (the
+    answer is the same: preparing a frame is a pure function of it)."""
     registrar = cached_registrar(job.grid, job.fan, job.fmt)
     return registrar.register(
-        registrar.prepare(job.earlier_coarse, job.earlier_mask),
-        registrar.prepare(job.later_coarse, job.later_mask),
+        _prepared(registrar, job.earlier, job.earlier_coarse, job.earlier_mask),
+        _prepared(registrar, job.later, job.later_coarse, job.later_mask),
         job.expected,
         prior_sigma_m=job.prior_sigma_m,
         yaw_known=job.yaw_known,

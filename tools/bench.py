@@ -319,6 +319,12 @@ class BenchResult:
     """The simulator ran beside the engine (a survey too long to write out first)."""
 
     @property
+    def pss_growth_mb_per_1000(self) -> float:
+        """The PSS's growth per 1000 frames over the run's second half (a straight line
+        fitted; NaN with too few samples)."""
+        return _second_half_growth(self.pss_samples, self.frames)
+
+    @property
     def peak_pss_mb(self) -> float:
         """The largest PSS sampled, over the engine's process and its workers."""
         values = [v for _, v in self.pss_samples if math.isfinite(v)]
@@ -360,6 +366,7 @@ class BenchResult:
             "workers": self.workers,
             "worker_stages": list(self.worker_stages),
             "peak_pss_mb": self.peak_pss_mb,
+            "pss_growth_mb_per_1000_frames": self.pss_growth_mb_per_1000,
             "pss_samples": [[frames, value] for frames, value in self.pss_samples],
             "simulator_beside_engine": self.streamed,
         }
@@ -385,7 +392,7 @@ def run_bench(
 ) -> BenchResult:
     """``workers``: worker processes for the engine's stages (``daemon.workers``)."""
     from daemon.replay import mount_from_config, pipeline_params, streaming_params
-    from daemon.workers import live_front
+    from daemon.workers import live_front, task_pool
     from tools.sim.scenarios import STREAM_ONLY
 
     if max_pings is not None:
@@ -460,12 +467,8 @@ def run_bench(
     rss_end, peak = rss_mb()
     memory.append((frames, rss_end))
     pss.append((frames, pss_mb(_pids(front))))
-    growth = math.nan
-    half = [m for m in memory if m[0] >= frames / 2]
-    if len(half) >= 3:
-        x = np.array([m[0] for m in half], float)
-        y = np.array([m[1] for m in half], float)
-        growth = float(np.polyfit(x, y, 1)[0] * 1000.0)
+    engine.close()  # the live engine's worker (the survey-end pass has its own)
+    growth = _second_half_growth(memory, frames)
     stats = engine.stats
     stages = {k: 1000.0 * v / max(frames, 1) for k, v in sorted(stats.stage_s.items())}
     if front is not None:
@@ -479,7 +482,12 @@ def run_bench(
 
         started = time.perf_counter()
         final_spill = DiskSpill(Path(spill_dir.name) / "final")
-        engine.finish(pings_again, spill=final_spill)
+        pool = task_pool(workers, log=print, threads=threads)
+        try:
+            engine.finish(pings_again, spill=final_spill, pool=pool)
+        finally:
+            if pool is not None:
+                pool.close()
         final_s = time.perf_counter() - started
     spill_written = spill.bytes_written / 2**20
     spill_dir.cleanup()
@@ -514,6 +522,17 @@ def run_bench(
     )
 
 
+def _second_half_growth(samples: list[tuple[int, float]], frames: int) -> float:
+    """MB per 1000 frames, a straight line fitted to the samples of the second half (NaN
+    with fewer than three)."""
+    half = [m for m in samples if m[0] >= frames / 2 and math.isfinite(m[1])]
+    if len(half) < 3:
+        return math.nan
+    x = np.array([m[0] for m in half], float)
+    y = np.array([m[1] for m in half], float)
+    return float(np.polyfit(x, y, 1)[0] * 1000.0)
+
+
 def _growth(value: float | None) -> str:
     if value is None:
         return "- (run more frames to measure it)"
@@ -546,7 +565,8 @@ def format_table(result: BenchResult) -> str:
         f"{j['peak_rss_mb']:.0f} MB",
         f"  memory growth            {_growth(j['rss_growth_mb_per_1000_frames'])}",
         f"  workers                  {result.workers} (peak PSS with them "
-        f"{j['peak_pss_mb'] or math.nan:.0f} MB)",
+        f"{j['peak_pss_mb'] or math.nan:.0f} MB, growth "
+        f"{_growth(j['pss_growth_mb_per_1000_frames'])})",
         f"  tiles published          {j['tiles_published']}",
         f"  tile spill written       {j['spill_written_mb']:.0f} MB",
     ]
@@ -556,8 +576,8 @@ def format_table(result: BenchResult) -> str:
 
 
 def plot_memory(result: BenchResult, path: Path) -> None:
-    """The memory curve (RSS against frames) as a PNG, with the growth fitted to its
-    second half."""
+    """The memory curve as a PNG: the engine's RSS and the PSS of the engine and its
+    workers together against frames, with the growth fitted to its second half."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -567,9 +587,17 @@ def plot_memory(result: BenchResult, path: Path) -> None:
     rss = [m[1] for m in result.memory_samples]
     figure, axes = plt.subplots(figsize=(8, 4.5), dpi=100)
     try:
-        axes.plot(frames, rss, lw=1.2, label="resident memory (RSS)")
-        axes.axhline(result.peak_rss_mb, color="grey", ls=":", lw=1, label="peak")
+        axes.plot(frames, rss, lw=1.2, label="the engine's process (RSS)")
+        axes.axhline(result.peak_rss_mb, color="grey", ls=":", lw=1, label="its peak")
         growth = result.rss_growth_mb_per_1000
+        if result.workers and result.pss_samples:
+            axes.plot(
+                [m[0] for m in result.pss_samples],
+                [m[1] for m in result.pss_samples],
+                lw=1.2,
+                label="the engine and its front worker (PSS)",
+            )
+            growth = result.pss_growth_mb_per_1000
         title = f"seamap bench: {result.scenario}, {result.frames} frames"
         if math.isfinite(growth):
             title += f" (growth {growth:.2f} MB per 1000 frames, second half)"
