@@ -13,6 +13,7 @@ as after a gap), and the survey goes on.
 from __future__ import annotations
 
 import contextlib
+import functools
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -23,11 +24,14 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, replace
 from itertools import islice
 from typing import Any, Generic, TypeVar
 
 from daemon.channel import Channel
+from mapping.fmt import Registration
 from mapping.frames import SonarMount
+from mapping.live_closures import ClosureJob, ClosureRegistrar
 from mapping.stream_front import Front, FrontJob, FrontResult
 from mapping.stream_params import StreamingParams
 
@@ -58,22 +62,22 @@ def default_workers() -> int:
     return max(cores - 1, 0)
 
 
-def _front_main(
+def _serve(
     connection: multiprocessing.connection.Connection,
-    mount: SonarMount,
-    params: StreamingParams,
+    make: Callable[[], Callable[[Any], Any]],
     threads: int,
 ) -> None:
-    """The worker: jobs in, results out, in order, until ``None`` or the pipe closes.
+    """A worker: ``make()`` builds what runs the jobs (a front, a closure registrar); jobs
+    in, results out, in order, until ``None`` or the pipe closes.
 
     A thread takes the jobs off the pipe as they come: while the worker waits for the
-    engine to take a result (a result is larger than the pipe holds), the engine may be
-    handing it the next job, and neither must wait for the other."""
+    engine to take a result, the engine may be handing it the next job, and neither must
+    wait for the other."""
     import cv2
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's own signals are its own
     cv2.setNumThreads(threads)
-    jobs: queue.SimpleQueue[FrontJob | None] = queue.SimpleQueue()
+    jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
     channel = Channel(connection)
 
     def take_jobs() -> None:
@@ -86,20 +90,160 @@ def _front_main(
             if job is None:
                 return
 
-    threading.Thread(target=take_jobs, name="seamap-front-jobs", daemon=True).start()
-    front = Front(mount, params)
+    threading.Thread(target=take_jobs, name="seamap-worker-jobs", daemon=True).start()
+    run = make()
     while True:
         job = jobs.get()
         if job is None:
             return
         try:
-            channel.send(front.run(job))
+            channel.send(run(job))
         except (BrokenPipeError, ConnectionResetError, OSError):
             return
 
 
+def _make_front(mount: SonarMount, params: StreamingParams) -> Callable[[FrontJob], FrontResult]:
+    return Front(mount, params).run
+
+
+def _make_closures() -> Callable[[ClosureBatch], list[tuple[int, Registration]]]:
+    registrar = ClosureRegistrar()
+
+    def run(batch: ClosureBatch) -> list[tuple[int, Registration]]:
+        return [(job.index, registrar.run(job)) for job in batch.jobs]
+
+    return run
+
+
+@dataclass(frozen=True, slots=True)
+class ClosureBatch:
+    """The live loop closures' registrations that ride with the ping ``index``."""
+
+    index: int
+    jobs: tuple[ClosureJob, ...]
+
+
+class _Worker:
+    """One worker process answering jobs in order (``_serve``), restarted when it dies
+    with the jobs it had not answered sent again. ``index(job)`` names a job in the log."""
+
+    def __init__(
+        self,
+        name: str,
+        make: Callable[[], Callable[[Any], Any]],
+        threads: int,
+        log: Callable[[str], None],
+        index: Callable[[Any], int],
+    ) -> None:
+        self.name = name
+        self.make = make
+        self.threads = threads
+        self.log = log
+        self.index = index
+        self.restarts = 0
+        self._context = multiprocessing.get_context("spawn")
+        self.waiting: deque[Any] = deque()
+        """Jobs sent whose results have not been taken, in order."""
+        self.process: Any = None
+        self.channel: Channel | None = None
+        self._start()
+
+    def _start(self) -> None:
+        parent, child = self._context.Pipe()
+        process = self._context.Process(
+            target=_serve,
+            args=(child, self.make, self.threads),
+            name=f"seamap-{self.name.split()[0]}",
+            daemon=True,
+        )
+        process.start()
+        child.close()
+        self.process, self.channel = process, Channel(parent)
+
+    def _restart(self) -> None:
+        """The worker died: say so, start another, and give it the jobs not answered."""
+        process = self.process
+        code = None
+        if process is not None:
+            process.join(timeout=1.0)
+            code = process.exitcode
+        first = self.index(self.waiting[0]) if self.waiting else None
+        resumed = f"; frames from {first} are registered anew" if first is not None else ""
+        self.log(
+            f"mapping worker ({self.name}, pid {process.pid if process else '?'}) "
+            f"ended with exit code {code}: restarted{resumed}"
+        )
+        if self.channel is not None:
+            self.channel.close()
+        self.restarts += 1
+        self._start()
+        for job in self.waiting:
+            self._send(job)
+
+    def _send(self, job: Any) -> None:
+        assert self.channel is not None
+        try:
+            self.channel.send(job)
+        except (BrokenPipeError, ConnectionResetError, OSError):
+            self._restart()
+
+    def submit(self, job: Any) -> None:
+        self.waiting.append(job)
+        self._send(job)
+
+    def ready(self) -> bool:
+        if not self.waiting:
+            return False
+        assert self.channel is not None
+        try:
+            if self.channel.poll(0):
+                return True
+        except (EOFError, OSError):
+            pass
+        if not self.process.is_alive():
+            self._restart()
+        return False
+
+    def result(self) -> Any:
+        """The next job's result (waits for it)."""
+        if not self.waiting:
+            raise RuntimeError("no job is waiting for a result")
+        while True:
+            channel = self.channel
+            assert channel is not None
+            try:
+                if channel.poll(POLL_S):
+                    result = channel.recv()
+                    self.waiting.popleft()
+                    return result
+            except (EOFError, OSError):
+                self._restart()
+                continue
+            if not self.process.is_alive():
+                self._restart()
+
+    def close(self) -> None:
+        """Stop the worker (it finishes the job it has, drops the rest)."""
+        channel, process = self.channel, self.process
+        self.channel = self.process = None
+        self.waiting.clear()
+        if channel is not None:
+            with contextlib.suppress(OSError):
+                channel.send(None)
+            channel.close()
+        if process is not None:
+            process.join(timeout=5.0)
+            if process.is_alive():
+                process.kill()
+                process.join(timeout=5.0)
+
+
 class ProcessFront:
-    """The front stage in a worker process (``mapping.stream_front.FrontStage``).
+    """The front stage in a worker process (``mapping.stream_front.FrontStage``); with
+    ``side``, the live loop closures' registrations in a second one (they come in lumps,
+    one registration on the blending grid every second or so, that would hold up the
+    pings behind them), their results joined to the front's result of the ping they rode
+    with, so the engine sees the same sequence either way.
 
     ``log``: where a worker's death and restart is said (one line each)."""
 
@@ -109,115 +253,76 @@ class ProcessFront:
         params: StreamingParams,
         log: Callable[[str], None] | None = None,
         threads: int | None = None,
+        side: bool = False,
     ) -> None:
         self.mount = mount
         self.params = params
         self.log = log or (lambda _line: None)
         self.threads = _threads(threads)
-        self.restarts = 0
-        self._context = multiprocessing.get_context("spawn")
-        self._waiting: deque[FrontJob] = deque()
-        """Jobs sent whose results have not been taken, in order."""
-        self._process: Any = None
-        self._connection: Channel | None = None
-        self._start()
+        self.side = side
+        """The live closures' registrations run in a worker of their own."""
+        self._front = _Worker(
+            "front stage",
+            functools.partial(_make_front, mount, params),
+            self.threads,
+            self.log,
+            lambda job: int(job.index),
+        )
+        self._side = (
+            _Worker("live closures", _make_closures, self.threads, self.log, lambda b: int(b.index))
+            if side
+            else None
+        )
+
+    @property
+    def restarts(self) -> int:
+        return self._front.restarts + (self._side.restarts if self._side is not None else 0)
 
     @property
     def pid(self) -> int | None:
-        """The worker's process id."""
-        return None if self._process is None else int(self._process.pid)
+        """The front worker's process id."""
+        process = self._front.process
+        return None if process is None else int(process.pid)
 
-    def _start(self) -> None:
-        parent, child = self._context.Pipe()
-        process = self._context.Process(
-            target=_front_main,
-            args=(child, self.mount, self.params, self.threads),
-            name="seamap-front",
-            daemon=True,
-        )
-        process.start()
-        child.close()
-        self._process, self._connection = process, Channel(parent)
-
-    def _restart(self) -> None:
-        """The worker died: say so, start another, and give it the jobs not answered."""
-        process = self._process
-        code = None
-        if process is not None:
-            process.join(timeout=1.0)
-            code = process.exitcode
-        first = self._waiting[0].index if self._waiting else None
-        resumed = f"; frames from {first} are registered anew" if first is not None else ""
-        self.log(
-            f"mapping worker (front stage, pid {process.pid if process else '?'}) "
-            f"ended with exit code {code}: restarted{resumed}"
-        )
-        if self._connection is not None:
-            self._connection.close()
-        self.restarts += 1
-        self._start()
-        for job in self._waiting:
-            self._send(job)
-
-    def _send(self, job: FrontJob) -> None:
-        assert self._connection is not None
-        try:
-            self._connection.send(job)
-        except (BrokenPipeError, ConnectionResetError, OSError):
-            self._restart()
+    @property
+    def pids(self) -> list[int]:
+        """Every worker's process id (for memory accounting)."""
+        workers = [self._front, *([self._side] if self._side is not None else [])]
+        return [int(w.process.pid) for w in workers if w.process is not None]
 
     def submit(self, job: FrontJob) -> None:
-        self._waiting.append(job)
-        self._send(job)
+        if self._side is not None and job.closures:
+            self._side.submit(ClosureBatch(job.index, job.closures))
+            job = replace(job, closures=())
+        self._front.submit(job)
 
     def ready(self) -> bool:
-        if not self._waiting:
+        if not self._front.ready():
             return False
-        assert self._connection is not None
-        try:
-            if self._connection.poll(0):
-                return True
-        except (EOFError, OSError):
-            pass
-        if not self._process.is_alive():
-            self._restart()
-        return False
+        side = self._side
+        if (
+            side is None
+            or not side.waiting
+            or side.waiting[0].index != self._front.waiting[0].index
+        ):
+            return True
+        return side.ready()
 
     def result(self) -> FrontResult:
-        if not self._waiting:
-            raise RuntimeError("no job is waiting for a result")
-        while True:
-            connection = self._connection
-            assert connection is not None
-            try:
-                if connection.poll(POLL_S):
-                    result: FrontResult = connection.recv()
-                    job = self._waiting.popleft()
-                    if result.index != job.index:
-                        raise RuntimeError(
-                            f"the front worker answered frame {result.index} for {job.index}"
-                        )
-                    return result
-            except (EOFError, OSError):
-                self._restart()
-                continue
-            if not self._process.is_alive():
-                self._restart()
+        expected = self._front.waiting[0].index if self._front.waiting else None
+        result: FrontResult = self._front.result()
+        if result.index != expected:
+            raise RuntimeError(f"the front worker answered frame {result.index} for {expected}")
+        side = self._side
+        if side is not None and side.waiting and side.waiting[0].index == result.index:
+            result.closures = tuple(side.result())
+        return result
 
     def close(self) -> None:
-        """Stop the worker (it finishes the job it has, drops the rest)."""
-        connection, process = self._connection, self._process
-        self._connection = self._process = None
-        self._waiting.clear()
-        if connection is not None:
-            with contextlib.suppress(OSError):
-                connection.send(None)
-            connection.close()
-        if process is not None:
-            process.join(timeout=5.0)
-            if process.is_alive():
-                process.kill()
-                process.join(timeout=5.0)
+        """Stop the workers (each finishes the job it has, drops the rest)."""
+        self._front.close()
+        if self._side is not None:
+            self._side.close()
 
 
 def live_front(
@@ -228,11 +333,14 @@ def live_front(
     threads: int | None = None,
 ) -> ProcessFront | None:
     """Where the live engine's front runs with ``workers`` worker processes (``[daemon]
-    workers``; -1: ``default_workers``): in a worker from one on, else (None) in the
-    engine's own process."""
+    workers``; -1: ``default_workers``): in a worker from one on (from two, the live
+    loop closures' registrations in a second), else (None) in the engine's own
+    process."""
     if workers < 0:
         workers = default_workers()
-    return ProcessFront(mount, params, log, threads) if workers >= 1 else None
+    if workers < 1:
+        return None
+    return ProcessFront(mount, params, log, threads, side=workers >= 2)
 
 
 def _pool_worker_init(threads: int) -> None:

@@ -260,9 +260,8 @@ def pss_mb(pids: list[int]) -> float:
 
 
 def _pids(front: Any) -> list[int]:
-    """This process and its front's worker, if it has one."""
-    pid = getattr(front, "pid", None)
-    return [os.getpid()] + ([pid] if pid is not None else [])
+    """This process and its front's workers, if it has any."""
+    return [os.getpid(), *getattr(front, "pids", ())]
 
 
 def rss_mb() -> tuple[float, float]:
@@ -595,7 +594,7 @@ def plot_memory(result: BenchResult, path: Path) -> None:
                 [m[0] for m in result.pss_samples],
                 [m[1] for m in result.pss_samples],
                 lw=1.2,
-                label="the engine and its front worker (PSS)",
+                label="the engine and its workers (PSS)",
             )
             growth = result.pss_growth_mb_per_1000
         title = f"seamap bench: {result.scenario}, {result.frames} frames"

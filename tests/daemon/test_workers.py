@@ -46,7 +46,9 @@ def _survey(scenario: str, seed: int, pings: int) -> Survey:
 
 @pytest.fixture(scope="module")
 def quadrats() -> Survey:
-    return _survey("quadrats", 4, 300)
+    """Two lanes and the start of a third: the live loop closures' registrations start
+    about frame 300, where the third lane passes over the first."""
+    return _survey("quadrats", 4, 380)
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +58,9 @@ def shore() -> Survey:
     return _survey("shore", 1, 300)
 
 
-def _run(survey: Survey, workers: int, kill_at: int | None = None) -> Run:
+def _run(survey: Survey, workers: int, kill_at: int | None = None, kill: int = 0) -> Run:
+    """``kill_at``: the ping at which worker ``kill`` (0: the front's, 1: the live
+    closures') is killed."""
     mount = mount_from_config(survey.config.sonar)
     params = streaming_params(pipeline_params(survey.config), survey.config.live)
     said: list[str] = []
@@ -75,8 +79,8 @@ def _run(survey: Survey, workers: int, kill_at: int | None = None) -> Run:
             if isinstance(sample, Ping):
                 pings += 1
                 if pings == kill_at:
-                    assert isinstance(front, ProcessFront) and front.pid is not None
-                    os.kill(front.pid, signal.SIGKILL)
+                    assert isinstance(front, ProcessFront)
+                    os.kill(front.pids[kill], signal.SIGKILL)
         engine.flush()
     finally:
         engine.close()
@@ -96,20 +100,28 @@ def test_the_live_map_is_the_same_to_the_bit_with_the_front_in_a_worker(
     survey: Survey = request.getfixturevalue(name)
     inline = _run(survey, workers=0)
     worker = _run(survey, workers=1)
+    two = _run(survey, workers=2)  # the live closures' registrations in a second worker
     assert isinstance(inline.engine.front, InlineFront)
     assert isinstance(worker.engine.front, ProcessFront)
+    assert isinstance(two.engine.front, ProcessFront) and two.engine.front.side
+    closures = inline.engine.closures
+    if name == "quadrats":
+        assert closures is not None and closures.stats.attempts >= 10, closures
     assert inline.engine.stats.frames_mapped > 250
     assert inline.engine.stats.resolves >= 1  # the re-solve and its redraws are in it
     # Every pose update, every tile published, in the same order, to the bit.
-    assert worker.poses == inline.poses
-    assert worker.tiles == inline.tiles
-    np.testing.assert_array_equal(np.array(worker.engine.poses), np.array(inline.engine.poses))
+    for run in (worker, two):
+        assert run.poses == inline.poses
+        assert run.tiles == inline.tiles
+        np.testing.assert_array_equal(np.array(run.engine.poses), np.array(inline.engine.poses))
 
 
-def test_a_front_worker_killed_mid_survey_is_replaced_and_the_survey_goes_on(
-    quadrats: Survey,
+@pytest.mark.parametrize("kill", [0, 1], ids=["front", "closures"])
+def test_a_worker_killed_mid_survey_is_replaced_and_the_survey_goes_on(
+    quadrats: Survey, kill: int
 ) -> None:
-    killed = _run(quadrats, workers=1, kill_at=120)
+    # The closures' worker is killed while it has registrations to answer.
+    killed = _run(quadrats, workers=1 + kill, kill_at=120 if kill == 0 else 330, kill=kill)
     stats = killed.engine.stats
     assert stats.frames_received == sum(isinstance(s, Ping) for s in quadrats.samples)
     # The frames the dead worker held are registered by the new one: none is lost.
