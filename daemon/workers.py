@@ -1,13 +1,16 @@
-"""Worker processes for the live engine's stages: the front (``mapping.stream_front``) in
-a process of its own, so that preprocessing and registering the next pings use another
-core while the engine chains, draws and re-solves the frames before them.
+"""Worker processes: the live engine's front (``mapping.stream_front``) in a process of
+its own, so that preprocessing and registering the next pings use another core while the
+engine chains, draws and re-solves the frames before them; from two workers the live loop
+closures' registrations in a second; and the survey-end pass's pure tasks
+(``mapping.tasks``) in a pool.
 
-The worker is spawned (not forked: the daemon holds threads), takes jobs in order over a
-pipe and sends each result back in the same order; the engine takes them in submission
-order, so the map does not depend on how fast the worker runs. A worker that dies (killed,
-out of memory) is one line in the log and a new worker: the jobs it had not answered go to
-the new one, whose registration starts a new chain there (the first frame on its prior,
-as after a gap), and the survey goes on.
+Each worker is spawned (not forked: the daemon holds threads), takes jobs in order over a
+pipe whose arrays travel through shared memory (``daemon.channel``) and sends each result
+back in the same order; the engine takes them in submission order, so the map does not
+depend on how fast a worker runs. A worker that dies (killed, out of memory) is one line
+in the log and a new worker: the jobs it had not answered go to the new one (the front's
+registration starts a new chain there, the first frame on its prior, as after a gap; a
+pure task's answer is the same), and the survey goes on.
 """
 
 from __future__ import annotations
@@ -22,8 +25,6 @@ import signal
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from itertools import islice
 from typing import Any, Generic, TypeVar
@@ -134,8 +135,12 @@ class _Worker:
         threads: int,
         log: Callable[[str], None],
         index: Callable[[Any], int],
+        said: str | None = None,
     ) -> None:
+        """``said``: the line a death is told with (else one naming the frame the
+        registrations start again from)."""
         self.name = name
+        self.said = said
         self.make = make
         self.threads = threads
         self.log = log
@@ -167,12 +172,15 @@ class _Worker:
         if process is not None:
             process.join(timeout=1.0)
             code = process.exitcode
-        first = self.index(self.waiting[0]) if self.waiting else None
-        resumed = f"; frames from {first} are registered anew" if first is not None else ""
-        self.log(
-            f"mapping worker ({self.name}, pid {process.pid if process else '?'}) "
-            f"ended with exit code {code}: restarted{resumed}"
-        )
+        if self.said is not None:
+            self.log(f"{self.said} (pid {process.pid if process else '?'}, exit code {code})")
+        else:
+            first = self.index(self.waiting[0]) if self.waiting else None
+            resumed = f"; frames from {first} are registered anew" if first is not None else ""
+            self.log(
+                f"mapping worker ({self.name}, pid {process.pid if process else '?'}) "
+                f"ended with exit code {code}: restarted{resumed}"
+            )
         if self.channel is not None:
             self.channel.close()
         self.restarts += 1
@@ -343,18 +351,21 @@ def live_front(
     return ProcessFront(mount, params, log, threads, side=workers >= 2)
 
 
-def _pool_worker_init(threads: int) -> None:
-    import cv2
+def _run_task(item: tuple[Callable[[Any], Any], Any]) -> Any:
+    task, job = item
+    return task(job)
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    cv2.setNumThreads(threads)
+
+def _make_task_runner() -> Callable[[tuple[Callable[[Any], Any], Any]], Any]:
+    return _run_task
 
 
 class ProcessPool:
-    """Pure tasks (``mapping.tasks``) in ``workers`` worker processes, at most ``ahead``
-    jobs out at once, the results in the jobs' order. A worker that dies is one line in
-    the log and a new pool; the jobs it had out are run again (a pure task's answer is
-    the same), so nothing is lost and nothing changes."""
+    """Pure tasks (``mapping.tasks``) in ``workers`` worker processes (``_Worker``: their
+    arrays through shared memory, not pickled through the pipe), handed out in turn, at
+    most ``ahead`` jobs out at once in ``run``, the results in the jobs' order. A worker
+    that dies is one line in the log and a new worker; the jobs it had out are run again
+    (a pure task's answer is the same), so nothing is lost and nothing changes."""
 
     def __init__(
         self,
@@ -367,16 +378,23 @@ class ProcessPool:
         self.log = log or (lambda _line: None)
         self.threads = _threads(threads)
         self.ahead = ahead if ahead is not None else 2 * self.workers
-        self.restarts = 0
-        self._executor = self._start()
+        self._workers = [
+            _Worker(
+                "pool",
+                _make_task_runner,
+                self.threads,
+                self.log,
+                lambda _job: -1,
+                said="a mapping worker died: it is started again and its tasks run again",
+            )
+            for _ in range(self.workers)
+        ]
+        self._handles: list[deque[_Handle[Any]]] = [deque() for _ in range(self.workers)]
+        self._turn = 0
 
-    def _start(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(
-            self.workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_pool_worker_init,
-            initargs=(self.threads,),
-        )
+    @property
+    def restarts(self) -> int:
+        return sum(worker.restarts for worker in self._workers)
 
     def run(self, task: Callable[[J], R], jobs: Iterable[J]) -> Iterator[R]:
         out: deque[_Handle[R]] = deque()
@@ -388,52 +406,44 @@ class ProcessPool:
             yield out.popleft().result()
 
     def submit(self, task: Callable[[J], R], job: J) -> _Handle[R]:
-        return _Handle(self, task, job)
+        which = self._turn
+        self._turn = (self._turn + 1) % self.workers
+        handle: _Handle[R] = _Handle(self, which)
+        self._workers[which].submit((task, job))
+        self._handles[which].append(handle)
+        return handle
 
-    def _recover(self, broken: ProcessPoolExecutor) -> None:
-        """The pool ``broken`` lost a worker: start another pool (once for all the tasks
-        it had out)."""
-        if self._executor is not broken:
-            return
-        self.restarts += 1
-        self.log("a mapping worker died: the pool is started again and its tasks run again")
-        broken.shutdown(wait=False, cancel_futures=True)
-        self._executor = self._start()
+    def _answer(self, which: int, handle: _Handle[Any]) -> None:
+        """Take worker ``which``'s results, in order, until ``handle``'s is in."""
+        handles = self._handles[which]
+        while not handle.done:
+            first = handles.popleft()
+            first.value = self._workers[which].result()
+            first.done = True
 
     def pids(self) -> list[int]:
         """The worker processes' ids (for memory accounting)."""
-        processes = getattr(self._executor, "_processes", None) or {}
-        return [int(pid) for pid in processes]
+        return [int(w.process.pid) for w in self._workers if w.process is not None]
 
     def close(self) -> None:
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        for worker in self._workers:
+            worker.close()
 
 
 class _Handle(Generic[R]):
-    """A task submitted to a ``ProcessPool``: run again in the new pool if a worker died."""
+    """A task submitted to a ``ProcessPool``: its result once its worker answered."""
 
-    def __init__(self, pool: ProcessPool, task: Callable[[J], R], job: J) -> None:
+    def __init__(self, pool: ProcessPool, which: int) -> None:
         self._pool = pool
-        self._task: Callable[[Any], R] = task
-        self._job: Any = job
-        self._future = self._submit()
-
-    def _submit(self) -> Future[R]:
-        """Hand the task to the pool's executor; one found broken is replaced first."""
-        while True:
-            self._executor = self._pool._executor
-            try:
-                return self._executor.submit(self._task, self._job)
-            except BrokenProcessPool:
-                self._pool._recover(self._executor)
+        self._which = which
+        self.done = False
+        self.value: Any = None
 
     def result(self) -> R:
-        while True:
-            try:
-                return self._future.result()
-            except BrokenProcessPool:
-                self._pool._recover(self._executor)
-                self._future = self._submit()
+        if not self.done:
+            self._pool._answer(self._which, self)
+        value: R = self.value
+        return value
 
 
 def task_pool(
