@@ -23,6 +23,7 @@ import os
 import queue
 import signal
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
@@ -107,11 +108,13 @@ def _make_front(mount: SonarMount, params: StreamingParams) -> Callable[[FrontJo
     return Front(mount, params).run
 
 
-def _make_closures() -> Callable[[ClosureBatch], list[tuple[int, Registration]]]:
+def _make_closures() -> Callable[[ClosureBatch], tuple[list[tuple[int, Registration]], float]]:
     registrar = ClosureRegistrar()
 
-    def run(batch: ClosureBatch) -> list[tuple[int, Registration]]:
-        return [(job.index, registrar.run(job)) for job in batch.jobs]
+    def run(batch: ClosureBatch) -> tuple[list[tuple[int, Registration]], float]:
+        started = time.perf_counter()
+        answers = [(job.index, registrar.run(job)) for job in batch.jobs]
+        return answers, time.perf_counter() - started
 
     return run
 
@@ -323,7 +326,9 @@ class ProcessFront:
             raise RuntimeError(f"the front worker answered frame {result.index} for {expected}")
         side = self._side
         if side is not None and side.waiting and side.waiting[0].index == result.index:
-            result.closures = tuple(side.result())
+            answers, seconds = side.result()
+            result.closures = tuple(answers)
+            result.seconds["closure registration"] = seconds
         return result
 
     def close(self) -> None:
