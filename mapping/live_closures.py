@@ -500,7 +500,8 @@ class LiveClosures:
         self._last_attempt = time
         self.stats.attempts += 1
         self._pairs = [pair for pair in self._pairs if time - pair.last.time_j <= p.pass_gap_s]
-        _, unknown = self._expected(keyframe, time, chain_xy, anchor)
+        pair = self._pair_of(keyframe.time, time)
+        _, unknown = self._expected(keyframe, pair, chain_xy, time, anchor)
         predicted = anchor.correction_covariance() + unknown
         sigma = math.sqrt(max(float(np.linalg.eigvalsh(predicted[:2, :2])[-1]), 0.0))
         sigma = min(max(sigma, p.search_sigma_m[0]), p.search_sigma_m[1])
@@ -534,7 +535,7 @@ class LiveClosures:
         self._stale = anchor.drift_covariance(max(now - time, 0.0), drift)
         self._pairs = [pair for pair in self._pairs if time - pair.last.time_j <= p.pass_gap_s]
         pair = self._pair_of(keyframe.time, time)
-        bend, unknown = self._expected(keyframe, time, attempt.chain_xy, anchor)
+        bend, unknown = self._expected(keyframe, pair, attempt.chain_xy, time, anchor)
         closure = self._register(attempt, registration, anchor, bend, unknown)
         if closure is None:
             if pair is not None:
@@ -551,12 +552,17 @@ class LiveClosures:
         return self._confirm(closure, anchor, unknown)
 
     def _expected(
-        self, keyframe: Keyframe, time: float, chain_xy: Array, anchor: LiveAnchor
+        self,
+        keyframe: Keyframe,
+        pair: _Pair | None,
+        chain_xy: Array,
+        time: float,
+        anchor: LiveAnchor,
     ) -> tuple[Array, Array]:
         """What the anchor is predicted to measure at frame ``time`` (the chain at
         ``chain_xy``) beyond its own correction: the map's known ``bend`` between a
-        confirmed pair's last keyframe and this one, and what is ``unknown`` (3 x 3)."""
-        pair = self._pair_of(keyframe.time, time)
+        confirmed pair's last keyframe and this one (``pair``, None for a new pair of
+        passes), and what is ``unknown`` (3 x 3)."""
         if pair is not None:
             # In a confirmed pair the map's own bend between its last keyframe and this
             # one is known: the live correction is predicted to follow it.
