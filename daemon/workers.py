@@ -31,6 +31,7 @@ from itertools import islice
 from typing import Any, Generic, TypeVar
 
 from daemon.channel import Channel
+from daemon.memory import keep_heap
 from mapping.fmt import Registration
 from mapping.frames import SonarMount
 from mapping.live_closures import ClosureJob, ClosureRegistrar
@@ -79,6 +80,7 @@ def _serve(
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's own signals are its own
     cv2.setNumThreads(threads)
+    keep_heap()  # the same buffers again and again, not mapped and zeroed afresh
     jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
     channel = Channel(connection)
 

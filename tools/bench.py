@@ -306,6 +306,9 @@ class BenchResult:
     spill_written_mb: float = 0.0
     """What the live engine wrote to its tile spill (the daemon's disk traffic)."""
     final_pass_s: float | None = None
+    final_stages_s: dict[str, float] = field(default_factory=dict)
+    """The survey-end pass's stages (seconds of its own process; a stage that ran on the
+    workers is the time it waited for them)."""
     range_m: float = math.nan
     """The sonar's range in the pings (m): a frame's cost depends on it."""
     workers: int = 0
@@ -360,6 +363,7 @@ class BenchResult:
             "tiles_published": self.tiles_published,
             "stages": self.stages_ms,
             "final_pass_s": self.final_pass_s,
+            "final_stages_s": self.final_stages_s,
             "spill_written_mb": self.spill_written_mb,
             "memory_samples": [[frames, rss] for frames, rss in self.memory_samples],
             "workers": self.workers,
@@ -473,6 +477,7 @@ def run_bench(
     if front is not None:
         stages["front wait"] = 1000.0 * stats.front_wait_s / max(frames, 1)
     final_s: float | None = None
+    final_stages: dict[str, float] = {}
     if final_pass:
 
         def pings_again() -> Iterator[Ping]:
@@ -483,7 +488,8 @@ def run_bench(
         final_spill = DiskSpill(Path(spill_dir.name) / "final")
         pool = task_pool(workers, log=print, threads=threads)
         try:
-            engine.finish(pings_again, spill=final_spill, pool=pool)
+            final = engine.finish(pings_again, spill=final_spill, pool=pool)
+            final_stages = dict(final.timings)
         finally:
             if pool is not None:
                 pool.close()
@@ -511,6 +517,7 @@ def run_bench(
         memory_samples=memory,
         spill_written_mb=spill_written,
         final_pass_s=final_s,
+        final_stages_s=final_stages,
         range_m=range_m,
         workers=workers if front is not None else 0,
         worker_stages=(
@@ -571,6 +578,8 @@ def format_table(result: BenchResult) -> str:
     ]
     if result.final_pass_s is not None:
         lines.append(f"  survey-end pass          {result.final_pass_s:.1f} s")
+        for stage, seconds in result.final_stages_s.items():
+            lines.append(f"    {stage:<22}{seconds:>8.1f} s")
     return "\n".join(lines)
 
 
