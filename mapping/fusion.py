@@ -54,6 +54,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from mapping.marginals import pose_covariance_blocks, symmetric_factor
 from mapping.samples import GnssFixType
 from mapping.se2 import between, between_jacobian, compose_rows, wrap_pi
 from mapping.sparse import factor_spd, solve_spd
@@ -1023,8 +1024,16 @@ class Fusion:
 def _pose_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
     """Per pair (i, j), the 6 x 6 covariance of poses i and j (x, y, psi each) from the
     factor ``lu`` of the information matrix, with ``t`` the frames' unknowns (rows: 3k,
-    3k + 1, 3k + 2 for frame k) as linear in the factored problem's (columns). Solved for
-    a bounded batch of poses at a time, so memory does not grow with the survey."""
+    3k + 1, 3k + 2 for frame k) as linear in the factored problem's (columns): over each
+    pose's reach in a symmetric factor (``mapping.marginals``), else by whole columns."""
+    if symmetric_factor(lu):
+        return pose_covariance_blocks(lu, t, pairs)
+    return _column_covariance_blocks(lu, t, pairs)
+
+
+def _column_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
+    """``_pose_covariance_blocks`` by whole columns of the inverse, solved for a bounded
+    batch of poses at a time, so memory does not grow with the survey."""
     size = lu.shape[0]
     involved = np.unique(pairs)
     per_batch = max(1, _RHS_BYTES // (8 * 3 * size))

@@ -40,6 +40,9 @@ def _compiled(function: Any) -> Any:
         return numba.njit(nogil=True)(function)
 
 
+compiled = _compiled
+"""The compile other modules' loops use (``mapping.marginals``)."""
+
 U8 = npt.NDArray[np.uint8]
 U16 = npt.NDArray[np.uint16]
 F32 = npt.NDArray[np.float32]

@@ -274,17 +274,24 @@ def _dense_relative_covariances(fusion: Fusion, pairs, poses) -> np.ndarray:
     return np.array(out)
 
 
-def test_relative_covariances_are_the_dense_inverse_in_bounded_batches(monkeypatch) -> None:
+@pytest.mark.parametrize("by", ["reach", "columns"])
+def test_relative_covariances_are_the_dense_inverse_in_bounded_batches(monkeypatch, by) -> None:
     """The closures' predicted covariances come from the sparse factor a few poses at a
-    time (here one: the batch bound forced down) and equal the dense inverse's."""
+    time (here one: the poses' cache, or the columns' batch bound, forced down) and equal
+    the dense inverse's, over each pose's reach in the symmetric factor
+    (``mapping.marginals``) or, were the factor not symmetric, by whole columns."""
     import mapping.fusion as fusion_module
+    import mapping.marginals as marginals
 
     times, _, data, constraints, initial, closures = _with_closures(2.0, 3)
     fusion = Fusion(times, data)
     solution, _ = fusion.solve(initial, constraints)
     pairs = [(c.i, c.j) for c in closures]
     assert len(pairs) >= 30
+    monkeypatch.setattr(marginals, "CACHED_POSES", 1)
     monkeypatch.setattr(fusion_module, "_RHS_BYTES", 1)
+    if by == "columns":
+        monkeypatch.setattr(fusion_module, "symmetric_factor", lambda lu: False)
     got = fusion.relative_covariances(pairs)
     want = _dense_relative_covariances(fusion, pairs, solution.poses)
     np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
