@@ -52,12 +52,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from mapping.marginals import pose_covariance_blocks, symmetric_factor
 from mapping.samples import GnssFixType
 from mapping.se2 import between, between_jacobian, compose_rows, wrap_pi
-from mapping.sparse import factor_spd, solve_spd
+from mapping.sparse import SpdFactor, factor_spd, solve_spd
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -1021,7 +1020,7 @@ class Fusion:
         return out
 
 
-def _pose_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
+def _pose_covariance_blocks(lu: SpdFactor, t: sp.csr_matrix, pairs: IntArray) -> Array:
     """Per pair (i, j), the 6 x 6 covariance of poses i and j (x, y, psi each) from the
     factor ``lu`` of the information matrix, with ``t`` the frames' unknowns (rows: 3k,
     3k + 1, 3k + 2 for frame k) as linear in the factored problem's (columns): over each
@@ -1031,7 +1030,7 @@ def _pose_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray)
     return _column_covariance_blocks(lu, t, pairs)
 
 
-def _column_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
+def _column_covariance_blocks(lu: SpdFactor, t: sp.csr_matrix, pairs: IntArray) -> Array:
     """``_pose_covariance_blocks`` by whole columns of the inverse, solved for a bounded
     batch of poses at a time, so memory does not grow with the survey."""
     size = lu.shape[0]

@@ -27,9 +27,9 @@ from collections import OrderedDict
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from mapping.kernels import compiled
+from mapping.sparse import SpdFactor
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -129,22 +129,22 @@ def block_of(
     return out
 
 
-def symmetric_factor(lu: spla.SuperLU) -> bool:
+def symmetric_factor(lu: SpdFactor) -> bool:
     """Whether ``lu`` is a symmetric factorisation (one permutation for rows and columns,
     as ``mapping.sparse.factor_spd`` makes it): then U is D L^T."""
-    return bool(np.array_equal(lu.perm_r, lu.perm_c))
+    return lu.symmetric
 
 
 class _Solver:
     """y = L^-1 P t_row^T for the rows of ``t`` (CSR: the unknowns asked about as linear
     in the factored problem's), with the work arrays for it."""
 
-    def __init__(self, lu: spla.SuperLU, t: sp.csr_matrix) -> None:
+    def __init__(self, lu: SpdFactor, t: sp.csr_matrix) -> None:
         lower = sp.csc_matrix(lu.L)
         self.indptr = lower.indptr.astype(np.int64)
         self.indices = lower.indices.astype(np.int64)
         self.data = np.asarray(lower.data, np.float64)
-        self.perm = np.asarray(lu.perm_r, np.int64)
+        self.perm = lu.perm
         self.inverse_d = 1.0 / np.asarray(lu.U.diagonal(), np.float64)
         size = lower.shape[0]
         self.x = np.zeros(size)
@@ -177,7 +177,7 @@ class _Solver:
         return np.concatenate(index), np.concatenate(value), starts
 
 
-def pose_covariance_blocks(lu: spla.SuperLU, t: sp.csr_matrix, pairs: IntArray) -> Array:
+def pose_covariance_blocks(lu: SpdFactor, t: sp.csr_matrix, pairs: IntArray) -> Array:
     """Per pair (i, j), the 6 x 6 covariance of poses i and j (x, y, psi each) from the
     symmetric factor ``lu`` of the information matrix (``symmetric_factor``), with ``t``
     the frames' unknowns (rows 3k, 3k + 1, 3k + 2 for frame k) as linear in the factored
