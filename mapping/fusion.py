@@ -53,7 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from mapping.marginals import pose_covariance_blocks, symmetric_factor
+from mapping.marginals import pose_covariance_blocks
 from mapping.samples import GnssFixType
 from mapping.se2 import between, between_jacobian, compose_rows, wrap_pi
 from mapping.sparse import SpdFactor, factor_spd, solve_spd
@@ -1025,7 +1025,7 @@ def _pose_covariance_blocks(lu: SpdFactor, t: sp.csr_matrix, pairs: IntArray) ->
     factor ``lu`` of the information matrix, with ``t`` the frames' unknowns (rows: 3k,
     3k + 1, 3k + 2 for frame k) as linear in the factored problem's (columns): over each
     pose's reach in a symmetric factor (``mapping.marginals``), else by whole columns."""
-    if symmetric_factor(lu):
+    if lu.symmetric:
         return pose_covariance_blocks(lu, t, pairs)
     return _column_covariance_blocks(lu, t, pairs)
 

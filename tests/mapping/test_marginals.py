@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 import mapping.marginals as marginals
-from mapping.marginals import lower_solve, pose_covariance_blocks, symmetric_factor
+from mapping.marginals import lower_solve, pose_covariance_blocks
 from mapping.sparse import DAMPING, factor_spd
 
 
@@ -47,7 +47,8 @@ def test_the_reach_solve_is_the_triangular_solve(nonzeros: int) -> None:
 def test_pose_blocks_are_the_dense_inverse_whatever_the_order_and_cache(monkeypatch) -> None:
     """A chain of poses with a few ties across it and a dense column (the structure of
     the survey's normal matrix), the poses' unknowns as combinations of the factored ones
-    (as two-stage's rigid submaps make them), pairs out of order, the cache at one pose."""
+    (as two-stage's rigid submaps make them), pairs out of order, the cache at its least
+    (the pair's own two poses)."""
     rng = np.random.default_rng(7)
     poses = 60
     n = 3 * poses + 4
@@ -67,12 +68,12 @@ def test_pose_blocks_are_the_dense_inverse_whatever_the_order_and_cache(monkeypa
             jac[r, c] += v * (1.0 + 0.1 * rng.normal())
     normal = sp.csc_matrix(jac.T @ jac) + sp.identity(n, format="csc")
     lu = factor_spd(normal)
-    assert symmetric_factor(lu)
+    assert lu.symmetric
     t = sp.csr_matrix(
         sp.random(3 * poses, n, density=0.02, random_state=rng) + sp.eye(3 * poses, n)
     )
     pairs = np.array([(5, 40), (0, 1), (40, 5), (12, 59), (5, 41), (33, 2)], np.int64)
-    monkeypatch.setattr(marginals, "CACHED_POSES", 1)
+    monkeypatch.setattr(marginals, "CACHE_BYTES", 1)
     got = pose_covariance_blocks(lu, t, pairs)
     sigma = t @ np.linalg.inv(normal.toarray() + DAMPING * np.eye(n)) @ t.T
     for m, (i, j) in enumerate(pairs):
