@@ -29,7 +29,13 @@ import numpy as np
 import numpy.typing as npt
 
 from mapping.fmt import Registration
-from mapping.frames import FrameOutcome, LocalRegistration, PairJob, register_pair_job
+from mapping.frames import (
+    FrameOutcome,
+    LocalRegistration,
+    PairJob,
+    prepare_frame_job,
+    register_pair_job,
+)
 from mapping.preprocess import SonarFrame
 from mapping.samples import Ping
 from mapping.se2 import RelativePose, relative_pose
@@ -183,31 +189,55 @@ def register_frames(
     ahead = RegisterAhead(local, pool, 3 * pool.workers + 2) if pool is not None else None
     outcomes: list[FrameOutcome] = []
     waiting: deque[_Frame] = deque()
+    preparing: deque[tuple[int, float, SonarFrame | TaskHandle[SonarFrame]]] = deque()
+    """Frames being preprocessed (in the pool, or here: done), in order, ahead of
+    ``waiting``."""
     pings_left: Iterator[tuple[int, Ping]] = iter(enumerate(pings))
     held: tuple[int, Ping] | None = None
     window = ahead.window if ahead is not None else 1
+    lead = 2 * pool.workers + 2 if pool is not None else 1
 
-    def fill() -> None:
+    def prepare() -> None:
+        """Hand the next pings' preprocessing to the pool, up to ``lead`` out at once. A
+        ping the pool cannot preprocess as here (the first, one of a new geometry: its
+        tables, a new chain) waits until every frame before it is registered, and is
+        preprocessed here."""
         nonlocal held
-        while len(waiting) < window:
+        while len(preparing) < lead:
             if held is None:
                 got = next(pings_left, None)
                 if got is None or got[0] >= n:
                     return
                 held = got
             index, ping = held
-            if waiting and local.preprocessor is not None and not local.same_geometry(ping):
-                return  # a new geometry: the frames before it are registered first
+            job = local.prepare_job(ping) if pool is not None else None
+            if job is not None:
+                assert pool is not None
+                preparing.append((index, ping.time, pool.submit(prepare_frame_job, job)))
+            elif preparing or waiting:
+                return  # the frames before it are registered first
+            else:
+                started = time.perf_counter()
+                preparing.append((index, ping.time, local.frame(ping)))
+                timed("preprocess", started)
             held = None
+
+    def fill() -> None:
+        while len(waiting) < window:
+            prepare()
+            if not preparing:
+                return
+            index, stamp, got = preparing.popleft()
             started = time.perf_counter()
-            frame = local.frame(ping)
+            frame = got if isinstance(got, SonarFrame) else got.result()
             timed("preprocess", started)
             prior = priors[index] if valid[index] else None
             epoch = int(gyro[index]) if gyro[index] >= 0 else None
-            entry = _Frame(index, ping.time, frame, prior, epoch)
+            entry = _Frame(index, stamp, frame, prior, epoch)
             waiting.append(entry)
             if ahead is not None:
                 ahead.predict(entry)
+        prepare()
 
     while True:
         fill()

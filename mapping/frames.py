@@ -268,6 +268,39 @@ def register_pair_job(job: PairJob) -> Registration:
     )
 
 
+@dataclass(frozen=True, slots=True)
+class PrepareJob:
+    """A ping to preprocess as ``LocalRegistration.frame`` would (``prepare_frame_job``),
+    with what that carries from the pings before it: the fan, the histogram reference the
+    first frame set, and the ping's attitude. A pure task (``mapping.tasks``): its answer
+    depends on the job alone, the same frame to the bit wherever it runs."""
+
+    ping: Ping
+    fan: FanGeometry
+    tilt_deg: float
+    params: PreprocessParams
+    attitude: Attitude | None
+    reference_cdf: npt.NDArray[np.float64] | None
+
+
+_PREPROCESSORS: list[tuple[tuple[object, ...], Preprocessor]] = []
+PREPROCESSORS_KEPT = 2
+"""Preprocessors a process keeps for ``prepare_frame_job`` (one per sonar geometry)."""
+
+
+def prepare_frame_job(job: PrepareJob) -> SonarFrame:
+    """The frame ``job`` asks for (``PrepareJob``), on a preprocessor this process keeps
+    for the fan, settings and reference (its tables built once)."""
+    reference = job.reference_cdf
+    key = (job.fan, job.tilt_deg, job.params, None if reference is None else reference.tobytes())
+    preprocessor = next((kept for known, kept in _PREPROCESSORS if known == key), None)
+    if preprocessor is None:
+        preprocessor = Preprocessor(job.fan, job.tilt_deg, job.params, reference_cdf=reference)
+        _PREPROCESSORS.insert(0, (key, preprocessor))
+        del _PREPROCESSORS[PREPROCESSORS_KEPT:]
+    return preprocessor(job.ping.image, job.attitude, job.ping.time)
+
+
 PairLookup = Callable[[int, int, RelativePose, float, bool], "Registration | None"]
 """What ``LocalRegistration.ahead`` answers: the registration of frame ``later`` against
 ``earlier`` with this prior, sigma and ``yaw_known`` when it was computed ahead, else None."""
@@ -345,6 +378,31 @@ class LocalRegistration:
             self._last = self._key = None  # a new geometry cannot be registered against the old
         attitude = self.attitude(ping.time) if self.attitude is not None else None
         return self.preprocessor(ping.image, attitude, ping.time)
+
+    def prepare_job(self, ping: Ping) -> PrepareJob | None:
+        """The job that preprocesses ``ping`` elsewhere (``prepare_frame_job``) to the same
+        frame that ``frame(ping)`` would give here, or None where only this object can: a
+        ping of another geometry than the last one preprocessed here (its tables, a new
+        chain), the first frame (it sets the histogram reference), or a flat field (a
+        running mean over every ping, kept here)."""
+        preprocessor = self.preprocessor
+        if (
+            preprocessor is None
+            or self._fan is None
+            or self.preprocess.flat_field_s > 0
+            or (self.preprocess.histogram_match and preprocessor.reference_cdf is None)
+            or not self._same_geometry(ping)
+        ):
+            return None
+        attitude = self.attitude(ping.time) if self.attitude is not None else None
+        return PrepareJob(
+            ping,
+            self._fan,
+            preprocessor.tilt_deg,
+            self.preprocess,
+            attitude,
+            preprocessor.reference_cdf,
+        )
 
     def same_geometry(self, ping: Ping) -> bool:
         """The ping's fan is the last preprocessed one's (no new tables, no new chain)."""

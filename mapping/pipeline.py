@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,13 @@ from mapping.blend import BlendParams, make_scorer
 from mapping.bottom import BottomParams, SeabedAttitude, SonarGeometry, seabed_attitude
 from mapping.ekf import EkfParams
 from mapping.fmt import FmtParams
-from mapping.frames import FrameOutcome, LocalRegistration, RegistrationParams, SonarMount
+from mapping.frames import (
+    FrameOutcome,
+    LocalRegistration,
+    RegistrationParams,
+    SonarMount,
+    prepare_frame_job,
+)
 from mapping.geo import LocalFrame
 from mapping.loops import (
     LoopParams,
@@ -40,13 +47,13 @@ from mapping.mosaic import SonarPose, TileGrid
 from mapping.navigation import AttitudeTrack, estimate_at, gyro_epochs, prepare_inputs
 from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
-from mapping.preprocess import PreprocessParams, lit_min_range
+from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.sonar_depth import SonarHead
 from mapping.survey_graph import GraphParams
-from mapping.tasks import TaskPool
+from mapping.tasks import TaskHandle, TaskPool
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -187,6 +194,31 @@ def _place_frames(
     return _chain(len(priors), accepted, edges, priors)
 
 
+def prepared_frames(
+    pings: Iterable[tuple[int, Ping]], local: LocalRegistration, pool: TaskPool | None
+) -> Iterator[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]]:
+    """The pings (index, ping) with their frames, in order: preprocessed in ``pool``
+    (``prepare_frame_job``, a few pings ahead) where ``local.prepare_job`` says the pool
+    gives the frame ``local.frame`` would, else here (the first, a new geometry, a flat
+    field; the pings before are then already handed out with their own tables). Each comes
+    with the preprocessor whose grid it is on. ``local`` only preprocesses (no chain)."""
+    lead = 2 * pool.workers + 2 if pool is not None else 0
+    out: deque[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]] = deque()
+    for index, ping in pings:
+        job = local.prepare_job(ping) if pool is not None else None
+        got: SonarFrame | TaskHandle[SonarFrame]
+        if job is not None:
+            assert pool is not None
+            got = pool.submit(prepare_frame_job, job)
+        else:
+            got = local.frame(ping)
+        assert local.preprocessor is not None
+        out.append((index, ping, got, local.preprocessor))
+        while len(out) > lead:
+            yield out.popleft()
+    yield from out
+
+
 def blend_frames(
     pings: Iterable[Ping],
     poses: Array,
@@ -199,11 +231,13 @@ def blend_frames(
     spill: TileSpill | None = None,
     attitude: Callable[[float], Attitude | None] | None = None,
     confidence: Array | None = None,
+    pool: TaskPool | None = None,
 ) -> TileStore:
     """Warp every mapped frame to its pose and blend it into the tile mosaic (Algorithm 1,
     lines 15-26). ``poses`` are vehicle poses in ``frame``'s local coordinates;
     ``attitude`` the roll and pitch of each ping by its stamp; ``confidence`` each frame's
-    factor on its blending score (``blend_confidence``; None: 1)."""
+    factor on its blending score (``blend_confidence``; None: 1); ``pool``: where the
+    frames are preprocessed (``prepared_frames``; None: here), the mosaic the same."""
     clock = clock or _Clock()
     mosaic = TileStore(TileGrid(params.mosaic_res_m, params.tile_px), params.blend, spill)
     scorer = make_scorer(params.blend)
@@ -212,16 +246,12 @@ def blend_frames(
     )
     sonar_poses = mount.sonar_pose(poses)
     n = len(mapped)
-    for index, ping in enumerate(pings):
-        if index >= n:
-            break
-        if not mapped[index]:
-            continue
-        t0 = time.perf_counter()
-        sonar_frame = preprocessing.frame(ping)
+    chosen = ((i, ping) for i, ping in enumerate(islice(pings, n)) if mapped[i])
+    t0 = time.perf_counter()  # preprocessing: here, or waiting for the pool
+    for index, ping, prepared, preprocessor in prepared_frames(chosen, preprocessing, pool):
+        sonar_frame = prepared if isinstance(prepared, SonarFrame) else prepared.result()
         t1 = clock.add("preprocess", t0)
-        preprocessor = preprocessing.preprocessor
-        assert preprocessor is not None and preprocessor.grid is not None
+        assert preprocessor.grid is not None
         score = scorer(
             sonar_frame.image, sonar_frame.mask, sonar_frame.weight, sonar_frame.fan_weight
         )
@@ -242,9 +272,9 @@ def blend_frames(
         if index % 50 == 0:
             # Tiles the boat has left leave memory (a no-op in short surveys).
             mosaic.evict_idle(ping.time)
-        clock.add("blending", t1)
         if progress is not None:
             progress("blending", index + 1, n)
+        t0 = clock.add("blending", t1)
     return mosaic
 
 
@@ -478,6 +508,7 @@ def map_survey(
         spill,
         attitude,
         confidence,
+        pool,
     )
     bottom: dict[str, Any] = {"source": "configured", "altitude_m": mount.altitude_m}
     if agrees is not None:

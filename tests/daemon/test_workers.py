@@ -154,9 +154,9 @@ def test_the_pool_gives_results_in_order_and_runs_a_dead_workers_tasks_again(
 
 
 def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> None:
-    """The survey-end pass's registrations (computed ahead, ``mapping.ahead``) and loop
-    closures in two worker processes: the same registrations, closures and poses, to
-    the bit (quadrats at 2 Hz: three lanes in 150 s)."""
+    """The survey-end pass's preprocessing, registrations (computed ahead,
+    ``mapping.ahead``) and loop closures in two worker processes: the same registrations,
+    closures, poses and mosaic, to the bit (quadrats at 2 Hz: three lanes in 150 s)."""
     simulate("quadrats", 5, tmp_path, max_pings=300, n_beams=128, ping_rate_hz=2)
     config = load_config(tmp_path / "site.toml")
     nav, _ = read_navigation(tmp_path / "nav.tlog", config)
@@ -179,3 +179,8 @@ def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> No
     assert pooled.loops == here.loops
     assert pooled.closures == here.closures
     np.testing.assert_array_equal(pooled.poses, here.poses)
+    # Its frames preprocessed in the pool, for the registrations and for blending: the
+    # same mosaic, tile for tile.
+    tiles = {t.key: t.values.tobytes() for t in here.mosaic.rendered_tiles()}
+    assert len(tiles) >= 20
+    assert {t.key: t.values.tobytes() for t in pooled.mosaic.rendered_tiles()} == tiles

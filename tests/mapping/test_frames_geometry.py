@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapping.frames import LocalRegistration, SonarMount
+from mapping.frames import _PREPROCESSORS, LocalRegistration, SonarMount, prepare_frame_job
+from mapping.polar import Attitude
+from mapping.preprocess import PreprocessParams, SonarFrame
 from mapping.samples import Ping
 
 
@@ -35,3 +37,45 @@ def test_the_geometry_is_kept_while_the_pings_share_it_and_rebuilt_when_they_do_
     assert local.preprocessor is not longer
     assert local.preprocessor is not None and local.preprocessor.grid is not None
     assert local.preprocessor.grid.shape[1] < longer.grid.shape[1]
+
+
+def _same_frames(a: SonarFrame, b: SonarFrame) -> None:
+    for name in ("image", "mask", "weight", "coarse", "fan_weight", "coarse_mask", "own_mask"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            assert x.dtype == y.dtype and np.array_equal(x, y), name
+
+
+def test_a_ping_preprocessed_elsewhere_is_the_frame_preprocessed_here() -> None:
+    """``prepare_job`` hands out what ``frame`` carries from the pings before (the fan, the
+    first frame's histogram reference, the ping's attitude): ``prepare_frame_job`` in a
+    fresh process state gives the same frame to the bit, tilted pings at their own
+    altitude included. The first ping, a new geometry and a flat field stay here."""
+    bearings = np.linspace(-1.13, 1.13, 128)
+
+    def attitude(t: float) -> Attitude:
+        return Attitude(0.02 * np.sin(t), 0.03 * np.cos(t), 1.0 + 0.2 * np.sin(3 * t))
+
+    mount = SonarMount(altitude_m=1.0, tilt_rad=0.35, forward_m=0.4)
+    here = LocalRegistration(mount, attitude=attitude)
+    elsewhere = LocalRegistration(mount, attitude=attitude)
+    pings = [_ping(0.1 * k, 200, 0.02, bearings.copy()) for k in range(6)]
+    assert elsewhere.prepare_job(pings[0]) is None  # nothing known yet
+    elsewhere.frame(pings[0])
+    _same_frames(elsewhere.frame(pings[0]), here.frame(pings[0]))
+    jobs = []
+    for ping in pings[1:]:
+        job = elsewhere.prepare_job(ping)
+        assert job is not None
+        jobs.append(job)
+        _PREPROCESSORS.clear()  # as in a worker that never saw this survey
+        _same_frames(prepare_frame_job(job), here.frame(ping))
+    for job in jobs:  # one preprocessor kept for them all
+        prepare_frame_job(job)
+    assert len(_PREPROCESSORS) == 1
+    # Another range: its tables are built here first.
+    assert elsewhere.prepare_job(_ping(1.0, 200, 0.03, bearings)) is None
+    flat = LocalRegistration(mount, PreprocessParams(flat_field_s=5.0))
+    flat.frame(pings[0])
+    assert flat.prepare_job(pings[1]) is None  # the running mean is kept here
