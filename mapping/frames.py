@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +25,7 @@ from mapping.posegraph import Edge
 from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame
 from mapping.samples import Ping
 from mapping.se2 import RelativePose, compose, relative_pose, wrap_pi
+from mapping.tasks import TaskHandle, TaskPool
 
 Array = npt.NDArray[np.float64]
 
@@ -299,6 +300,31 @@ def prepare_frame_job(job: PrepareJob) -> SonarFrame:
         _PREPROCESSORS.insert(0, (key, preprocessor))
         del _PREPROCESSORS[PREPROCESSORS_KEPT:]
     return preprocessor(job.ping.image, job.attitude, job.ping.time)
+
+
+def prepared_frames(
+    pings: Iterable[tuple[int, Ping]], local: LocalRegistration, pool: TaskPool | None
+) -> Iterator[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]]:
+    """The pings (index, ping) with their frames, in order: preprocessed in ``pool``
+    (``prepare_frame_job``, a few pings ahead) where ``local.prepare_job`` says the pool
+    gives the frame ``local.frame`` would, else here (the first, a new geometry, a flat
+    field; the pings before are then already handed out with their own tables). Each comes
+    with the preprocessor whose grid it is on. ``local`` only preprocesses (no chain)."""
+    lead = 2 * pool.workers + 2 if pool is not None else 0
+    out: deque[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]] = deque()
+    for index, ping in pings:
+        job = local.prepare_job(ping) if pool is not None else None
+        got: SonarFrame | TaskHandle[SonarFrame]
+        if job is not None:
+            assert pool is not None
+            got = pool.submit(prepare_frame_job, job)
+        else:
+            got = local.frame(ping)
+        assert local.preprocessor is not None
+        out.append((index, ping, got, local.preprocessor))
+        while len(out) > lead:
+            yield out.popleft()
+    yield from out
 
 
 PairLookup = Callable[[int, int, RelativePose, float, bool], "Registration | None"]

@@ -24,10 +24,11 @@ from scipy.spatial import cKDTree
 
 from mapping.closures import ClosureHypothesis
 from mapping.fmt import FmtParams, FmtRegistrar, cached_registrar
-from mapping.frames import LocalRegistration, SonarMount
+from mapping.frames import LocalRegistration, SonarMount, prepared_frames
 from mapping.grid import SonarGrid
 from mapping.kernels import compiled
 from mapping.overlap import OverlapRefiner
+from mapping.preprocess import SonarFrame
 from mapping.samples import Ping
 from mapping.se2 import RelativePose, relative_pose
 from mapping.tasks import InlinePool, TaskPool
@@ -329,9 +330,11 @@ def closure_jobs(
     local: LocalRegistration,
     params: LoopParams,
     report: LoopReport,
+    pool: TaskPool | None = None,
 ) -> Iterator[ClosureJob]:
     """The candidate pairs' jobs, in one pass over the pings (preprocessed in order, as
-    the registration pass preprocessed them: the flat field follows the pings)."""
+    the registration pass preprocessed them: the flat field follows the pings; in
+    ``pool`` where it gives the same frames, ``mapping.frames.prepared_frames``)."""
     mount = local.mount
     partners: dict[int, list[int]] = {}
     for i, j in pairs:
@@ -342,18 +345,22 @@ def closure_jobs(
         last_use[i] = max(last_use.get(i, -1), j)
     held: dict[int, tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]] = {}
     sonar = mount.sonar_pose(poses)
-    for index, ping in enumerate(pings):
-        if index not in wanted and index not in partners:
-            local.observe(ping)  # flattened as the registration pass flattened it
-            continue
-        frame = local.frame(ping)
+
+    def chosen() -> Iterator[tuple[int, Ping]]:
+        for index, ping in enumerate(pings):
+            if index in wanted or index in partners:
+                yield index, ping
+            else:
+                local.observe(ping)  # flattened as the registration pass flattened it
+
+    for index, _ping, prepared, preprocessor in prepared_frames(chosen(), local, pool):
+        frame = prepared if isinstance(prepared, SonarFrame) else prepared.result()
         image, mask = frame.image, frame.own_mask
         if index in wanted:
             held[index] = (image, mask)
         # The blending grid and fan (``LocalRegistration.fine_registrar``'s), for the
         # registrar the task builds where it runs.
-        preprocessor = local.preprocessor
-        assert preprocessor is not None and preprocessor.grid is not None
+        assert preprocessor.grid is not None
         grid, fan = preprocessor.grid, preprocessor.tables.mask
         for i in partners.get(index, []):
             kept = held.get(i)
@@ -385,7 +392,7 @@ def register_hypotheses(
     the same wherever they do."""
     if not pairs:
         return []
-    jobs = closure_jobs(pings, pairs, poses, local, params, report)
+    jobs = closure_jobs(pings, pairs, poses, local, params, report, pool)
     out: list[tuple[int, int, list[ClosureHypothesis]]] = []
     for found in (pool or InlinePool()).run(register_pair, jobs):
         report.registered += 1

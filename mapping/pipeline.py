@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter, deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 from itertools import islice
@@ -36,7 +36,7 @@ from mapping.frames import (
     LocalRegistration,
     RegistrationParams,
     SonarMount,
-    prepare_frame_job,
+    prepared_frames,
 )
 from mapping.geo import LocalFrame
 from mapping.loops import (
@@ -47,13 +47,13 @@ from mapping.mosaic import SonarPose, TileGrid
 from mapping.navigation import AttitudeTrack, estimate_at, gyro_epochs, prepare_inputs
 from mapping.polar import Attitude
 from mapping.posegraph import Edge, OptimiserParams
-from mapping.preprocess import Preprocessor, PreprocessParams, SonarFrame, lit_min_range
+from mapping.preprocess import PreprocessParams, SonarFrame, lit_min_range
 from mapping.samples import AttitudeSample, GnssFix, HeadingSample, ImuSample, Ping, RangeSample
 from mapping.se2 import RelativePose, compose, relative_pose
 from mapping.single_stage import SingleStageParams, single_stage
 from mapping.sonar_depth import SonarHead
 from mapping.survey_graph import GraphParams
-from mapping.tasks import TaskHandle, TaskPool
+from mapping.tasks import TaskPool
 from mapping.tiles import TileSpill, TileStore
 
 Array = npt.NDArray[np.float64]
@@ -192,31 +192,6 @@ def _place_frames(
     if mode is Mode.GPS_ONLY:
         return np.where(accepted[:, None], priors, np.nan)
     return _chain(len(priors), accepted, edges, priors)
-
-
-def prepared_frames(
-    pings: Iterable[tuple[int, Ping]], local: LocalRegistration, pool: TaskPool | None
-) -> Iterator[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]]:
-    """The pings (index, ping) with their frames, in order: preprocessed in ``pool``
-    (``prepare_frame_job``, a few pings ahead) where ``local.prepare_job`` says the pool
-    gives the frame ``local.frame`` would, else here (the first, a new geometry, a flat
-    field; the pings before are then already handed out with their own tables). Each comes
-    with the preprocessor whose grid it is on. ``local`` only preprocesses (no chain)."""
-    lead = 2 * pool.workers + 2 if pool is not None else 0
-    out: deque[tuple[int, Ping, SonarFrame | TaskHandle[SonarFrame], Preprocessor]] = deque()
-    for index, ping in pings:
-        job = local.prepare_job(ping) if pool is not None else None
-        got: SonarFrame | TaskHandle[SonarFrame]
-        if job is not None:
-            assert pool is not None
-            got = pool.submit(prepare_frame_job, job)
-        else:
-            got = local.frame(ping)
-        assert local.preprocessor is not None
-        out.append((index, ping, got, local.preprocessor))
-        while len(out) > lead:
-            yield out.popleft()
-    yield from out
 
 
 def blend_frames(
