@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 from mapping.polar import Attitude
 from mapping.samples import Ping, RangeSample
 from mapping.sonar_depth import SonarDepthParams, SonarHead, sonar_soundings
+from mapping.tasks import TaskPool
 
 Array = npt.NDArray[np.float64]
 
@@ -390,11 +391,13 @@ def seabed_attitude(
     sonar: SonarGeometry,
     params: BottomParams,
     pings: Callable[[], Iterable[Ping]] | None = None,
+    pool: TaskPool | None = None,
 ) -> SeabedAttitude | None:
     """The per-ping attitude with the seabed from the echosounder's soundings, else from
     the sonar's own ``pings`` (yielded afresh on each call), the pings at ``times`` with
     the vehicle ``priors`` (x, y, heading; NaN unknown) placing both; None when neither
-    is to be used or too few soundings are found."""
+    is to be used or too few soundings are found. ``pool``: where the sonar's pings are
+    sounded (``sonar_soundings``; None: here), the soundings the same."""
     vehicle_at = pose_interpolator(times, priors)
     model: BottomModel | None = None
     if params.use_echosounder and soundings:
@@ -405,7 +408,14 @@ def seabed_attitude(
             model = BottomModel(points, stamps, sonar.down_m, sonar.footprint(), params)
     if model is None and params.use_sonar and pings is not None and sonar.head is not None:
         points, stamps = sonar_soundings(
-            pings(), vehicle_at, sonar.sonar_pose, tilt_at, sonar.head, sonar.down_m, params.sonar
+            pings(),
+            vehicle_at,
+            sonar.sonar_pose,
+            tilt_at,
+            sonar.head,
+            sonar.down_m,
+            params.sonar,
+            pool,
         )
         if len(points) >= params.min_soundings:
             # Each sounding's error grows with the depth (a fraction of it, measured).

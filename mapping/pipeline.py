@@ -337,6 +337,7 @@ def _seabed(
     tilt_at: Callable[[float], Attitude | None] | None,
     mount: SonarMount,
     params: PipelineParams,
+    pool: TaskPool | None = None,
 ) -> SeabedAttitude | None:
     """Each ping's altitude and bottom slope from the echosounder, else the sonar's own
     pings (``mapping.bottom``), or None (the mount's altitude, level)."""
@@ -349,7 +350,7 @@ def _seabed(
     # The sonar's vertical beam as the preprocessing takes it.
     aperture = math.radians(p.vertical_aperture_deg)
     b = replace(b, sonar=replace(b.sonar, vertical_aperture_rad=aperture))
-    return seabed_attitude(nav.ranges, times, priors, tilt_at, geometry, b, pings)
+    return seabed_attitude(nav.ranges, times, priors, tilt_at, geometry, b, pings, pool)
 
 
 def map_survey(
@@ -394,7 +395,7 @@ def map_survey(
     attitude: Callable[[float], Attitude | None] | None = (
         track.at if params.project_attitude else None
     )
-    seabed = _seabed(pings, nav, times, priors, attitude, mount, params)
+    seabed = _seabed(pings, nav, times, priors, attitude, mount, params, pool)
     agrees: SeabedAttitude | None = None
     if seabed is not None and seabed.configured_holds:
         agrees, seabed = seabed, None

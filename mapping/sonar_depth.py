@@ -31,6 +31,7 @@ soundings against the truth's depth where they lie: median -1 to -2.5 % at 1-2 m
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -40,6 +41,7 @@ from scipy.ndimage import median_filter
 
 from mapping.polar import Attitude, FanGeometry, head_pose
 from mapping.samples import Ping
+from mapping.tasks import TaskHandle, TaskPool
 
 Array = npt.NDArray[np.float64]
 
@@ -284,6 +286,31 @@ def ping_soundings(
     return np.array(points, float).reshape(-1, 3)
 
 
+@dataclass(frozen=True, slots=True)
+class SoundingJob:
+    """One ping's soundings (``ping_soundings``) as a pure task (``mapping.tasks``)."""
+
+    ping: Ping
+    head: SonarHead
+    attitude: Attitude | None
+    params: SonarDepthParams
+
+
+def sounding_job(job: SoundingJob) -> Array:
+    return ping_soundings(job.ping, job.head, job.attitude, job.params)
+
+
+@dataclass(slots=True)
+class _Pending:
+    """A ping read and not yet sounded or passed over: its vehicle pose, whether it is
+    known, and its soundings asked of the pool (None: not asked)."""
+
+    ping: Ping
+    pose: Array
+    known: bool
+    handle: TaskHandle[Array] | None = None
+
+
 def sonar_soundings(
     pings: Iterable[Ping],
     vehicle_at: Callable[[Array], tuple[Array, npt.NDArray[np.bool_]]],
@@ -292,32 +319,94 @@ def sonar_soundings(
     head: SonarHead,
     sonar_down_m: float,
     params: SonarDepthParams,
+    pool: TaskPool | None = None,
 ) -> tuple[Array, Array]:
     """The soundings of every ping (``ping_soundings``) in the local frame, as
     ``mapping.bottom.BottomModel`` takes them: (n, 4) east, north, depth below the
     antenna's level and distance (0: the point is on the bed), and their pings' stamps.
-    Pings whose vehicle pose is unknown give none."""
+    Pings whose vehicle pose is unknown give none.
+
+    A ping is sounded ``sounding_interval_s`` after the last one that gave soundings, so
+    which ping comes next depends on what the last gave. ``pool``: the pings the interval
+    picks, assuming each gives soundings (nearly all do), are sounded there a few ahead;
+    where one gives none, the pings after it are picked again from what it did, the
+    soundings the same as one by one here."""
     rows: list[Array] = []
     stamps: list[Array] = []
     last = -math.inf
-    for ping in pings:
-        if ping.time - last < params.sounding_interval_s:
-            continue
-        pose, known = vehicle_at(np.array([ping.time]))
-        if not known[0]:
-            continue
-        attitude = tilt_at(ping.time) if tilt_at is not None else None
-        local = ping_soundings(ping, head, attitude, params)
+    interval = params.sounding_interval_s
+
+    def attitude_of(ping: Ping) -> Attitude | None:
+        return tilt_at(ping.time) if tilt_at is not None else None
+
+    def record(ping: Ping, pose: Array, local: Array) -> bool:
         if not len(local):
-            continue
-        x, y, azimuth = (float(v) for v in sonar_pose(pose[0]))
+            return False
+        x, y, azimuth = (float(v) for v in sonar_pose(pose))
         s, c = math.sin(azimuth), math.cos(azimuth)
         east = x + local[:, 0] * s + local[:, 1] * c
         north = y + local[:, 0] * c - local[:, 1] * s
         depth = sonar_down_m + local[:, 2]
-        last = ping.time
         rows.append(np.column_stack([east, north, depth, np.zeros(len(local))]))
         stamps.append(np.full(len(local), ping.time))
+        return True
+
+    if pool is None:
+        for ping in pings:
+            if ping.time - last < interval:
+                continue
+            pose, known = vehicle_at(np.array([ping.time]))
+            if not known[0]:
+                continue
+            if record(ping, pose[0], ping_soundings(ping, head, attitude_of(ping), params)):
+                last = ping.time
+        return _stacked(rows, stamps)
+
+    pending: deque[_Pending] = deque()
+    predicted = -math.inf
+    """``last`` after the newest pending ping, had every ping asked of the pool given
+    soundings."""
+    lead = 2 * pool.workers + 2
+
+    def ask(entry: _Pending) -> None:
+        nonlocal predicted
+        if entry.known and entry.ping.time - predicted >= interval:
+            if entry.handle is None:
+                job = SoundingJob(entry.ping, head, attitude_of(entry.ping), params)
+                entry.handle = pool.submit(sounding_job, job)
+            predicted = entry.ping.time
+        else:
+            entry.handle = None  # asked too early: its answer is dropped
+
+    def decide(entry: _Pending) -> None:
+        nonlocal last, predicted
+        if not entry.known or entry.ping.time - last < interval:
+            return
+        if entry.handle is not None:
+            local = entry.handle.result()
+        else:
+            local = ping_soundings(entry.ping, head, attitude_of(entry.ping), params)
+        if record(entry.ping, entry.pose, local):
+            last = entry.ping.time
+        if entry.handle is None or not len(local):
+            # Not as predicted: the pings waiting are picked again from here.
+            predicted = last
+            for waiting in pending:
+                ask(waiting)
+
+    for ping in pings:
+        pose, known = vehicle_at(np.array([ping.time]))
+        entry = _Pending(ping, pose[0], bool(known[0]))
+        pending.append(entry)
+        ask(entry)
+        while sum(e.handle is not None for e in pending) > lead:
+            decide(pending.popleft())
+    while pending:
+        decide(pending.popleft())
+    return _stacked(rows, stamps)
+
+
+def _stacked(rows: list[Array], stamps: list[Array]) -> tuple[Array, Array]:
     if not rows:
         return np.zeros((0, 4)), np.zeros(0)
     return np.concatenate(rows), np.concatenate(stamps)

@@ -10,7 +10,7 @@ import json
 import math
 import tomllib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,8 @@ from mapping.bottom import (
 from mapping.frames import SonarMount
 from mapping.polar import Attitude
 from mapping.samples import Ping
-from mapping.sonar_depth import SonarDepthParams, SonarHead, ping_soundings
+from mapping.sonar_depth import SonarDepthParams, SonarHead, ping_soundings, sonar_soundings
+from mapping.tasks import InlinePool
 from tools.sim.survey import simulate
 
 PINGS = 60
@@ -239,3 +240,67 @@ def test_the_configured_level_bed_holds_unless_a_bed_or_a_tide_explains_the_plan
     # a slope or a tide is that position or time explains it.
     planes, positions = _lawnmower_planes(bed, seed=7)
     assert configured_holds(planes, positions, 1.0, SonarDepthParams()) is holds
+
+
+def test_the_pings_sounded_ahead_in_a_pool_give_the_same_soundings(day: Day) -> None:
+    """``sonar_soundings`` with a pool picks the pings ahead, assuming each gives
+    soundings; where one gives none (water alone) or the pose is unknown, it picks the
+    pings after it again: the same soundings, from the same pings, as one by one."""
+    rng = np.random.default_rng(3)
+    pings = list(day.pings)
+    for k in (3, 4, 17, 30):  # water alone: no soundings
+        water = rng.gamma(1.5, 8.0, size=pings[k].image.shape).astype(np.uint8)
+        pings[k] = replace(pings[k], image=water)
+    times = np.array([p.time for p in pings])
+    unknown = (times > times[40]) & (times < times[44])
+    truth_at = {p.time: t for p, t in zip(pings, day.truth, strict=True)}
+
+    def vehicle_at(stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        poses = np.array(
+            [
+                [
+                    truth_at[s]["local_east"],
+                    truth_at[s]["local_north"],
+                    math.radians(truth_at[s]["grid_heading_deg"]),
+                ]
+                for s in stamps
+            ]
+        )
+        return poses, ~np.isin(stamps, times[unknown])
+
+    def tilt_at(stamp: float) -> Attitude:
+        return _attitude(truth_at[stamp])
+
+    class Counting(InlinePool):
+        """Counts the answers taken from it."""
+
+        taken = 0
+
+        def submit(self, task: Any, job: Any) -> Any:
+            done = super().submit(task, job)
+            pool = self
+
+            class Taken:
+                def result(self) -> Any:
+                    pool.taken += 1
+                    return done.result()
+
+            return Taken()
+
+    mount = day.mount
+    args = (vehicle_at, mount.sonar_pose, tilt_at, _head(mount), mount.down_m)
+    for interval in (0.0, 0.5, 1.3):
+        params = replace(SonarDepthParams(), sounding_interval_s=interval)
+        here = sonar_soundings(pings, *args, params)
+        pool = Counting()
+        pooled = sonar_soundings(pings, *args, params, pool)
+        assert len(here[0]) > 100
+        np.testing.assert_array_equal(pooled[0], here[0])
+        np.testing.assert_array_equal(pooled[1], here[1])
+        # Nearly every ping sounded was sounded ahead (those right after water alone or
+        # an unknown pose are sounded here).
+        sounded_pings = len(set(here[1]))
+        assert pool.taken >= sounded_pings - 4, (interval, pool.taken, sounded_pings)
+    sounded = set(here[1])
+    assert not sounded & {pings[k].time for k in (3, 4, 17, 30)}
+    assert not sounded & set(times[unknown])
