@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from filterpy.kalman import ExtendedKalmanFilter
 
 from mapping.se2 import wrap_pi
 
@@ -101,31 +100,43 @@ def level_imu(
     return forward, starboard, yaw_rate
 
 
-class _Ekf(ExtendedKalmanFilter):
-    """filterpy's EKF with the nonlinear kinematic propagation of the paper's model."""
+_EKF: list[type] = []
 
-    def __init__(self) -> None:
-        super().__init__(dim_x=STATE_SIZE, dim_z=1)
-        self.u_dt: tuple[ImuInput | None, float] = (None, 0.0)
 
-    def predict_x(self, u: object = 0) -> None:
-        imu, dt = self.u_dt
-        x = self.x[:, 0]
-        psi = x[PSI]
-        if imu is None:
-            a_f = a_s = rate = 0.0
-        else:
-            a_f = imu.forward_mps2 - x[BAX]
-            a_s = imu.starboard_mps2 - x[BAY]
-            rate = imu.yaw_rate_rps - x[BW]
-        s, c = math.sin(psi), math.cos(psi)
-        a_e = a_f * s + a_s * c
-        a_n = a_f * c - a_s * s
-        x[PX] += x[VX] * dt + 0.5 * a_e * dt * dt
-        x[PY] += x[VY] * dt + 0.5 * a_n * dt * dt
-        x[VX] += a_e * dt
-        x[VY] += a_n * dt
-        x[PSI] = (psi + rate * dt) % (2 * math.pi)
+def _ekf_class() -> type:
+    """filterpy's EKF with the nonlinear kinematic propagation of the paper's model, made
+    on first use: filterpy's import brings SciPy's statistics with it (about half a
+    second), which the worker processes that never run a filter need not pay."""
+    if _EKF:
+        return _EKF[0]
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    class _Ekf(ExtendedKalmanFilter):
+        def __init__(self) -> None:
+            super().__init__(dim_x=STATE_SIZE, dim_z=1)
+            self.u_dt: tuple[ImuInput | None, float] = (None, 0.0)
+
+        def predict_x(self, u: object = 0) -> None:
+            imu, dt = self.u_dt
+            x = self.x[:, 0]
+            psi = x[PSI]
+            if imu is None:
+                a_f = a_s = rate = 0.0
+            else:
+                a_f = imu.forward_mps2 - x[BAX]
+                a_s = imu.starboard_mps2 - x[BAY]
+                rate = imu.yaw_rate_rps - x[BW]
+            s, c = math.sin(psi), math.cos(psi)
+            a_e = a_f * s + a_s * c
+            a_n = a_f * c - a_s * s
+            x[PX] += x[VX] * dt + 0.5 * a_e * dt * dt
+            x[PY] += x[VY] * dt + 0.5 * a_n * dt * dt
+            x[VX] += a_e * dt
+            x[VY] += a_n * dt
+            x[PSI] = (psi + rate * dt) % (2 * math.pi)
+
+    _EKF.append(_Ekf)
+    return _Ekf
 
 
 def _heading_residual(a: Array, b: Array) -> Array:
@@ -142,7 +153,7 @@ class NavFilter:
 
     def __init__(self, params: EkfParams | None = None) -> None:
         self.params = params or EkfParams()
-        self.ekf = _Ekf()
+        self.ekf = _ekf_class()()
         self.time: float | None = None
         self.initialised = False
         self._last_imu: ImuInput | None = None
