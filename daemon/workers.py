@@ -20,6 +20,7 @@ import functools
 import multiprocessing
 import multiprocessing.connection
 import os
+import pickle
 import queue
 import signal
 import threading
@@ -101,9 +102,30 @@ def _serve(
         if job is None:
             return
         try:
-            channel.send(run(job))
+            result: Any = run(job)
+        except Exception as error:  # the job's own failure, for the engine to raise
+            result = Failed.of(error)
+        try:
+            channel.send(result)
         except (BrokenPipeError, ConnectionResetError, OSError):
             return
+
+
+@dataclass(frozen=True, slots=True)
+class Failed:
+    """A job that raised in its worker: the engine raises ``error`` where it takes the
+    result, as if the job had run in its own process. (Before, the worker ended with it,
+    was started again, was given the same job and ended again, without end.)"""
+
+    error: BaseException
+
+    @classmethod
+    def of(cls, error: BaseException) -> Failed:
+        try:
+            pickle.loads(pickle.dumps(error))
+        except Exception:  # an exception that does not cross processes: its words do
+            return cls(RuntimeError(f"{type(error).__name__}: {error}"))
+        return cls(error)
 
 
 def _make_front(mount: SonarMount, params: StreamingParams) -> Callable[[FrontJob], FrontResult]:
@@ -228,12 +250,15 @@ class _Worker:
                 if channel.poll(POLL_S):
                     result = channel.recv()
                     self.waiting.popleft()
-                    return result
+                    break
             except (EOFError, OSError):
                 self._restart()
                 continue
             if not self.process.is_alive():
                 self._restart()
+        if isinstance(result, Failed):
+            raise result.error
+        return result
 
     def close(self) -> None:
         """Stop the worker (it finishes the job it has, drops the rest)."""

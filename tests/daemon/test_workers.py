@@ -153,6 +153,43 @@ def test_the_pool_gives_results_in_order_and_runs_a_dead_workers_tasks_again(
     assert pool.restarts == 1 and len(said) == 1 and "run again" in said[0]
 
 
+class _Unpicklable(Exception):
+    def __reduce__(self) -> Any:
+        raise TypeError("not across processes")
+
+
+def _fails_on(job: int) -> int:
+    """A pure task that raises for some jobs, as a task on bad input would."""
+    if job == 2:
+        raise ValueError("ping 2 has no beams")
+    if job == 4:
+        raise FileNotFoundError("no such table")
+    if job == 6:
+        raise _Unpicklable("a local error")
+    return job + 100
+
+
+def test_a_task_that_raises_in_a_worker_raises_in_the_engine_and_the_worker_goes_on() -> None:
+    """Before, the worker ended with the error, was started again with the same job and
+    ended again, without end. Now the error is raised where the result is taken (an
+    OSError too, which is not taken for a dead worker), and the worker takes the next
+    job."""
+    said: list[str] = []
+    pool = ProcessPool(1, log=said.append)
+    try:
+        assert pool.submit(_fails_on, 1).result() == 101
+        with pytest.raises(ValueError, match="no beams"):
+            pool.submit(_fails_on, 2).result()
+        with pytest.raises(FileNotFoundError, match="no such table"):
+            pool.submit(_fails_on, 4).result()
+        with pytest.raises(RuntimeError, match="_Unpicklable: a local error"):
+            pool.submit(_fails_on, 6).result()
+        assert list(pool.run(_fails_on, [3, 5])) == [103, 105]
+    finally:
+        pool.close()
+    assert pool.restarts == 0 and said == []
+
+
 def test_the_survey_end_pass_in_workers_gives_the_same_map(tmp_path: Path) -> None:
     """The survey-end pass's preprocessing, registrations (computed ahead,
     ``mapping.ahead``) and loop closures in two worker processes: the same registrations,
