@@ -196,6 +196,9 @@ def register_frames(
     held: tuple[int, Ping] | None = None
     window = ahead.window if ahead is not None else 1
     lead = 2 * pool.workers + 2 if pool is not None else 1
+    # One worker has the pairs to register (about four times a frame's preprocessing):
+    # the frames are preprocessed here meanwhile. From two, the pool takes both.
+    shared = pool if pool is not None and pool.workers >= 2 else None
 
     def prepare() -> None:
         """Hand the next pings' preprocessing to the pool, up to ``lead`` out at once. A
@@ -210,10 +213,10 @@ def register_frames(
                     return
                 held = got
             index, ping = held
-            job = local.prepare_job(ping) if pool is not None else None
+            job = local.prepare_job(ping) if shared is not None else None
             if job is not None:
-                assert pool is not None
-                preparing.append((index, ping.time, pool.submit(prepare_frame_job, job)))
+                assert shared is not None
+                preparing.append((index, ping.time, shared.submit(prepare_frame_job, job)))
             elif preparing or waiting:
                 return  # the frames before it are registered first
             else:

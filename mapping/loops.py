@@ -353,7 +353,9 @@ def closure_jobs(
             else:
                 local.observe(ping)  # flattened as the registration pass flattened it
 
-    for index, _ping, prepared, preprocessor in prepared_frames(chosen(), local, pool):
+    # One worker has the registrations; from two, the pool preprocesses too.
+    shared = pool if pool is not None and pool.workers >= 2 else None
+    for index, _ping, prepared, preprocessor in prepared_frames(chosen(), local, shared):
         frame = prepared if isinstance(prepared, SonarFrame) else prepared.result()
         image, mask = frame.image, frame.own_mask
         if index in wanted:
