@@ -28,6 +28,7 @@ from mapping.frames import LocalRegistration, SonarMount, prepared_frames
 from mapping.grid import SonarGrid
 from mapping.kernels import compiled
 from mapping.overlap import OverlapRefiner
+from mapping.polar import FanGeometry
 from mapping.preprocess import SonarFrame
 from mapping.samples import Ping
 from mapping.se2 import RelativePose, relative_pose
@@ -75,6 +76,9 @@ class LoopReport:
     refined: int = 0
     """Hypotheses registered again on the shared seabed (``LoopParams.refine``)."""
     kept: int = 0
+    other_geometry: int = 0
+    """Candidate pairs left out because the sonar's range or beams changed between their
+    frames (their frames are on grids no registration compares)."""
 
 
 def _fan_samples(lit_m: tuple[float, float], half_fan_rad: float) -> Array:
@@ -343,7 +347,7 @@ def closure_jobs(
     last_use: dict[int, int] = {}
     for i, j in pairs:
         last_use[i] = max(last_use.get(i, -1), j)
-    held: dict[int, tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]] = {}
+    held: dict[int, tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None, FanGeometry]] = {}
     sonar = mount.sonar_pose(poses)
 
     def chosen() -> Iterator[tuple[int, Ping]]:
@@ -359,7 +363,7 @@ def closure_jobs(
         frame = prepared if isinstance(prepared, SonarFrame) else prepared.result()
         image, mask = frame.image, frame.own_mask
         if index in wanted:
-            held[index] = (image, mask)
+            held[index] = (image, mask, preprocessor.fan)
         # The blending grid and fan (``LocalRegistration.fine_registrar``'s), for the
         # registrar the task builds where it runs.
         assert preprocessor.grid is not None
@@ -368,7 +372,12 @@ def closure_jobs(
             kept = held.get(i)
             if kept is None:
                 continue
-            earlier, earlier_mask = kept
+            earlier, earlier_mask, earlier_fan = kept
+            if earlier_fan != preprocessor.fan:
+                # The sonar's range or beams changed between them: two grids that no
+                # registration compares (it raised, and the whole pass with it).
+                report.other_geometry += 1
+                continue
             report.candidates += 1
             yield ClosureJob(
                 i, index, earlier, earlier_mask, image, mask,

@@ -3,12 +3,23 @@ range or beams change (the Oculus changes range mid-survey)."""
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 
+from daemon.config import load_config
+from daemon.replay import mount_from_config, pipeline_params, read_navigation
+from drivers.oculus.logfile import iter_pings
 from mapping.frames import _PREPROCESSORS, LocalRegistration, SonarMount, prepare_frame_job
+from mapping.pipeline import Mode, map_survey
 from mapping.polar import Attitude
 from mapping.preprocess import PreprocessParams, SonarFrame
 from mapping.samples import Ping
+from mapping.tasks import InlinePool
+from tools.sim import simulate
 
 
 def _ping(t: float, n_ranges: int, resolution_m: float, bearings: np.ndarray) -> Ping:
@@ -79,3 +90,42 @@ def test_a_ping_preprocessed_elsewhere_is_the_frame_preprocessed_here() -> None:
     flat = LocalRegistration(mount, PreprocessParams(flat_field_s=5.0))
     flat.frame(pings[0])
     assert flat.prepare_job(pings[1]) is None  # the running mean is kept here
+
+
+class _TwoAtOnce(InlinePool):
+    """Tasks here, as a pool of two would be given them (``workers`` decides what the
+    survey-end pass hands out)."""
+
+    workers = 2
+
+
+def test_the_pass_preprocessing_in_a_pool_gives_the_same_map_across_a_range_change(
+    tmp_path: Path,
+) -> None:
+    """A survey whose sonar range changes mid-way (the Oculus at a shorter range from ping
+    60): the pass's frames preprocessed in the pool (registrations, closures, blending)
+    wait for the frames of the old range to be registered, the first of the new is
+    preprocessed here, and the registrations, poses and mosaic are those of one process.
+    Loop closure candidates between frames of the two ranges are left out."""
+    simulate("quadrats", 5, tmp_path, max_pings=140, n_beams=64, ping_rate_hz=2)
+    config = load_config(tmp_path / "site.toml")
+    nav, _ = read_navigation(tmp_path / "nav.tlog", config)
+    mount = mount_from_config(config.sonar)
+    params = pipeline_params(config)
+
+    def pings() -> Iterator[Ping]:
+        for k, ping in enumerate(iter_pings(tmp_path / "sonar.oculus")):
+            yield ping if k < 60 else replace(ping, image=ping.image[: ping.n_ranges * 4 // 5])
+
+    here = map_survey(pings, nav, mount, params, Mode.SINGLE_STAGE)
+    pooled = map_survey(pings, nav, mount, params, Mode.SINGLE_STAGE, pool=_TwoAtOnce())
+    assert sum(o.accepted for o in here.outcomes) >= 100, Counter(o.reason for o in here.outcomes)
+    # Candidate closures between the two ranges were left out (they raised, and the
+    # whole pass with them), those within one range registered.
+    assert here.loops.other_geometry > 0 and here.loops.registered > 0, here.loops
+    assert pooled.loops == here.loops
+    assert pooled.edges == here.edges
+    assert [o.reason for o in pooled.outcomes] == [o.reason for o in here.outcomes]
+    np.testing.assert_array_equal(pooled.poses, here.poses)
+    tiles = {t.key: t.values.tobytes() for t in here.mosaic.rendered_tiles()}
+    assert {t.key: t.values.tobytes() for t in pooled.mosaic.rendered_tiles()} == tiles
