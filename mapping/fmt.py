@@ -75,7 +75,11 @@ class FmtParams:
     seed 8 at 10 Hz). On the test bed's 200 pairs of known motion: 1.85 turns a pair to
     0.02 degrees, 1.34 to one sigma, the errors the same (2.25 / 3.77 mm, 65.6 mdeg
     against 2.24 / 3.78 mm, 65.2); single-stage lanes on 12 surveys of the matrix (one of
-    each condition, the 2 Hz ones): median 3.62 -> 3.76 cm, worst 9.1 -> 9.3.
+    each condition, the 2 Hz ones): median 3.62 -> 3.76 cm, worst 9.1 -> 9.3. Off (0) by
+    default: the whole matrix at 1 (session 28) found the sloping shore, whose 12-survey
+    check had one survey, twice as bad (shore seed 3 9.3 -> 20.0 cm, seed 2 14.8 -> 19.0),
+    the pairs' gain there not 1: the fit's answer after a turn it did not make is not
+    what the turn would have given.
     refine_iterations: most turns of the later frame.
     prior_trust_deg: the iteration starts at the prior's yaw when the spectra agree with
     it to this, at theirs otherwise.
@@ -103,7 +107,7 @@ class FmtParams:
     sectors: int = 4
     sector_blend_deg: float = 12.0
     refine_tolerance_deg: float = 0.02
-    refine_tolerance_sigmas: float = 1.0
+    refine_tolerance_sigmas: float = 0.0
     refine_iterations: int = 4
     prior_trust_deg: float = 0.5
     nms_radius_px: int = 3
