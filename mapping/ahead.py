@@ -195,10 +195,10 @@ def register_frames(
     pings_left: Iterator[tuple[int, Ping]] = iter(enumerate(pings))
     held: tuple[int, Ping] | None = None
     window = ahead.window if ahead is not None else 1
-    lead = 2 * pool.workers + 2 if pool is not None else 1
     # One worker has the pairs to register (about four times a frame's preprocessing):
     # the frames are preprocessed here meanwhile. From two, the pool takes both.
     shared = pool if pool is not None and pool.workers >= 2 else None
+    lead = 2 * shared.workers + 2 if shared is not None else 1
 
     def prepare() -> None:
         """Hand the next pings' preprocessing to the pool, up to ``lead`` out at once. A

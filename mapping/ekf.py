@@ -21,6 +21,7 @@ pass, which is what the paper's offline "EKF-smoothed" priors amount to.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -100,15 +101,11 @@ def level_imu(
     return forward, starboard, yaw_rate
 
 
-_EKF: list[type] = []
-
-
+@functools.cache
 def _ekf_class() -> type:
     """filterpy's EKF with the nonlinear kinematic propagation of the paper's model, made
     on first use: filterpy's import brings SciPy's statistics with it (about half a
     second), which the worker processes that never run a filter need not pay."""
-    if _EKF:
-        return _EKF[0]
     from filterpy.kalman import ExtendedKalmanFilter
 
     class _Ekf(ExtendedKalmanFilter):
@@ -135,7 +132,6 @@ def _ekf_class() -> type:
             x[VY] += a_n * dt
             x[PSI] = (psi + rate * dt) % (2 * math.pi)
 
-    _EKF.append(_Ekf)
     return _Ekf
 
 
