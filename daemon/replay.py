@@ -39,7 +39,7 @@ from drivers.errors import SeamapError
 from drivers.formats.area import read_area
 from drivers.formats.results import write_geotiff, write_png, write_report, write_trajectory
 from drivers.formats.tilespill import DiskSpill
-from drivers.oculus.logfile import V1_FILE_HEADER_SIZE
+from drivers.oculus.logfile import V1_FILE_HEADER_SIZE, CaptureClock
 from mapping.bottom import BottomParams
 from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
@@ -190,11 +190,54 @@ def read_navigation(nav_logs: LogPaths, config: SiteConfig) -> tuple[NavSamples,
     return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude, ranges=nav.ranges), info
 
 
-def ping_source(sonar_logs: LogPaths, skipped: dict[str, int]) -> Callable[[], Iterator[Ping]]:
+def check_captures(paths: Sequence[Path], clock: CaptureClock | None) -> None:
+    """SeamapError (one line) unless every sonar file can be stamped: a raw network
+    capture has no receipt times, so it needs ``clock`` (one capture, alone; its pings
+    v2, whose own clock spaces them, or a rate); ``clock`` with a log that has times is
+    refused too (it would be ignored)."""
+    from drivers.oculus.logfile import RAW_CAPTURE, LogReadReport, iter_log_items
+    from drivers.oculus.ping import read_ping_info
+
+    for path in paths:
+        report = LogReadReport()
+        items = iter_log_items(path, report)
+        raw = report.version == RAW_CAPTURE
+        if not raw:
+            if clock is not None:
+                raise SeamapError(
+                    f"{path}: a {report.format} log has its own receipt times: --sonar-start "
+                    "and --sonar-rate are for raw captures"
+                )
+            continue
+        if clock is None:
+            raise SeamapError(
+                f"{path}: a raw Oculus capture has no receipt times: give --sonar-start "
+                "(UNIX s of its first ping, the navigation log's clock) to map it"
+            )
+        if len(paths) > 1:
+            raise SeamapError(f"{_names(paths)}: --sonar-start stamps one raw capture, not several")
+        if clock.rate_hz is None:
+            for item in items:
+                try:
+                    version = read_ping_info(item.message).version
+                except SeamapError:
+                    continue
+                if version == 1:
+                    raise SeamapError(
+                        f"{path}: SimplePingResult v1 pings carry no clock with a documented "
+                        "unit: give the capture's ping rate (--sonar-rate HZ)"
+                    )
+                break
+
+
+def ping_source(
+    sonar_logs: LogPaths, skipped: dict[str, int], clock: CaptureClock | None = None
+) -> Callable[[], Iterator[Ping]]:
     """A callable yielding the pings of the log (or of its segments, one after another)
     afresh on each call (the pipeline reads the logs more than once instead of holding
     every frame in memory). At the end of each pass ``skipped`` holds the corrupt pings
-    and the number of files cut inside an item, over all the segments."""
+    and the number of files cut inside an item, over all the segments. ``clock`` stamps
+    a raw network capture's pings (``check_captures``)."""
     from drivers.oculus.logfile import LogReadReport, iter_pings
 
     paths = _log_paths(sonar_logs, "sonar log")
@@ -203,7 +246,7 @@ def ping_source(sonar_logs: LogPaths, skipped: dict[str, int]) -> Callable[[], I
         corrupt = truncated = 0
         for path in paths:
             report = LogReadReport()
-            yield from iter_pings(path, report)
+            yield from iter_pings(path, report, clock)
             corrupt += report.corrupt_pings
             truncated += int(report.truncated)
         skipped["corrupt_pings"] = corrupt
@@ -320,6 +363,7 @@ def replay(
     progress: Callable[[str, int, int], None] | None = None,
     area: Path | None = None,
     workers: int | None = None,
+    clock: CaptureClock | None = None,
 ) -> dict[str, Any]:
     """Map the logs and write the result folder; returns the report.
 
@@ -328,8 +372,9 @@ def replay(
     is used instead of loading ``config_path`` (which may then be None). ``area``: the
     survey's area (GeoJSON or a lat,lon list, ``drivers.formats.area``), read before any
     mapping: its covered fraction and gaps go into the result folder. ``workers``: the
-    live engine's worker processes (streaming; None: ``[daemon] workers``). Bad input
-    ends in one SeamapError naming the files.
+    live engine's worker processes (streaming; None: ``[daemon] workers``). ``clock``:
+    how a raw network capture's pings are stamped (``check_captures``). Bad input ends in
+    one SeamapError naming the files.
     """
     started = time.perf_counter()
     return_large_blocks()  # the tiles' stacks go back to the system when freed
@@ -340,8 +385,9 @@ def replay(
     survey_area = AreaSource(area, read_area(area)) if area is not None else None
     params = params or pipeline_params(config)
     samples, nav_info = read_navigation(nav_paths, config)
+    check_captures(sonar_paths, clock)
     skipped: dict[str, int] = {}
-    pings = ping_source(sonar_paths, skipped)
+    pings = ping_source(sonar_paths, skipped, clock)
     mount = mount_from_config(config.sonar)
     live: tuple[SurveyResult, StreamStats] | None = None
     # Tiles the boat has left wait on disk, so a long survey fits in memory.

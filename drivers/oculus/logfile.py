@@ -1,17 +1,22 @@
-"""Oculus log files: v1 (``.oculus`` binary) write and read, v2 (SQLite) read, summary.
+"""Oculus log files: v1 (``.oculus`` binary) write and read, v2 (SQLite) read, raw network
+captures read, summary.
 
 v1: a 48-byte RmLogHeader ``<2I16s2H4xqd`` (magic 0x11223344, header size, source
 "Oculus", version 1, encryption, key, creation time), then items: a 40-byte RmLogItem
 ``<2I2H4xdH2x2I4x`` (magic 0xAABBCCDD, header size, type 10 = Oculus sonar, version, time
 in UNIX s, compression 0 none / 1 Qt qCompress, originalSize, payloadSize) followed by one
 raw network message. v2: SQLite, table ``data(entryId, timestamp ms, type, dataSourceId,
-length, payload)``. The readers stream (one item in memory at a time), never raise on
+length, payload)``. Raw capture: Oculus network messages one after another as the sonar
+sent them, no log framing and no receipt times (liboculus's and driver tools' recordings, a
+TCP stream's bytes); framed as a live link is (``OculusFramer``), its pings stamped from a
+``CaptureClock`` the user gives. The readers stream (one item in memory at a time), never raise on
 damage after the first bytes, and account for what they could not read in a
 ``LogReadReport``.
 """
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import struct
 import time
@@ -22,6 +27,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
+from drivers.oculus.framer import OculusFramer, header_is_plausible
 from drivers.oculus.ping import PingInfo, parse_simple_ping, read_ping_info
 from drivers.oculus.protocol import (
     HEADER_SIZE,
@@ -34,6 +40,8 @@ from drivers.oculus.protocol import (
 )
 from mapping.samples import Ping
 
+RAW_CAPTURE = 0
+"""``LogReadReport.version`` of a raw network capture (no log framing)."""
 V1_FILE_MAGIC = 0x11223344
 V1_ITEM_MAGIC = 0xAABBCCDD
 ITEM_TYPE_OCULUS = 10
@@ -90,13 +98,14 @@ class LogItem:
 class LogReadReport:
     """What a reader got out of a log and what it had to leave.
 
+    version: 1 or 2 (``.oculus`` v1 or v2), ``RAW_CAPTURE`` (0) for a network capture.
     skipped_items: items not delivered, by reason. bytes_skipped: bytes passed over to
     resynchronise on the next item. truncated / bytes_unread: the file ends inside an item
     (power cut mid-write; for v2, SQLite reported a damaged file). messages: Oculus
     messages seen, by type name. corrupt_pings: SimplePingResults that failed to decode.
     """
 
-    version: int = 0
+    version: int = RAW_CAPTURE
     items: int = 0
     pings: int = 0
     skipped_items: dict[str, int] = field(default_factory=dict)
@@ -106,6 +115,11 @@ class LogReadReport:
     bytes_unread: int = 0
     messages: dict[str, int] = field(default_factory=dict)
     first_error: str | None = None
+
+    @property
+    def format(self) -> str:
+        """What was read: "oculus-v1", "oculus-v2" or "oculus-raw" (a network capture)."""
+        return "oculus-raw" if self.version == RAW_CAPTURE else f"oculus-v{self.version}"
 
     def skip(self, reason: str) -> None:
         self.skipped_items[reason] = self.skipped_items.get(reason, 0) + 1
@@ -191,10 +205,21 @@ def _detect_version(path: Path) -> int:
     # A file cut inside the 4-byte magic (even an empty one) is a truncated v1 log.
     if start[:4] == _FILE_MAGIC_BYTES or (len(start) < 4 and _FILE_MAGIC_BYTES.startswith(start)):
         return 1
+    if is_raw_capture_start(start):
+        return RAW_CAPTURE
     raise OculusFormatError(
-        f"{path}: not an Oculus log (starts with {start[:8].hex(' ')}, expected "
-        "44 33 22 11 or 'SQLite format 3')"
+        f"{path}: not an Oculus log or capture (starts with {start[:8].hex(' ')}, expected "
+        "44 33 22 11 (.oculus v1), 'SQLite format 3' (.oculus v2) or an Oculus message "
+        "header 53 4F (a raw capture))"
     )
+
+
+def is_raw_capture_start(head: bytes) -> bool:
+    """Whether a file's first 16 bytes are a plausible Oculus message header (the start of
+    a raw network capture): the magic, a known msgId and a size that fits it."""
+    if len(head) < HEADER_SIZE or head[:2] != OCULUS_MAGIC:
+        return False
+    return header_is_plausible(MessageHeader.unpack(head[:HEADER_SIZE]))
 
 
 def iter_log_items(path: PathLike, report: LogReadReport | None = None) -> Iterator[LogItem]:
@@ -208,7 +233,29 @@ def iter_log_items(path: PathLike, report: LogReadReport | None = None) -> Itera
     report.version = _detect_version(path)
     if report.version == 2:
         return _iter_v2(path, _v2_query(path), report)
+    if report.version == RAW_CAPTURE:
+        return _iter_raw(path, report)
     return _iter_v1(path, report)
+
+
+def _iter_raw(path: Path, report: LogReadReport) -> Iterator[LogItem]:
+    """The messages of a raw capture, framed as a live link's bytes are (garbage and cut
+    messages skipped and counted); each item's time is NaN (a capture has none)."""
+    framer = OculusFramer()
+    with open(path, "rb") as f:
+        while True:
+            chunk = f.read(_SCAN_CHUNK)
+            messages = framer.feed(chunk) if chunk else framer.flush()
+            for message in messages:
+                report.items += 1
+                report.bytes_skipped = framer.bytes_skipped
+                yield LogItem(math.nan, message, ITEM_TYPE_OCULUS)
+            if not chunk:
+                break
+    report.bytes_skipped = framer.bytes_skipped
+    if framer.pending_bytes:
+        # The capture ends inside a message: its head is all there is.
+        report.truncated, report.bytes_unread = True, framer.pending_bytes
 
 
 def _scan_for_item(f: BinaryIO, start: int) -> int | None:
@@ -410,17 +457,81 @@ def _ping_info(item: LogItem, report: LogReadReport) -> PingInfo | None:
     return info
 
 
-def iter_pings(path: PathLike, report: LogReadReport | None = None) -> Iterator[Ping]:
-    """The SimplePingResults of a v1 or v2 log as Pings stamped with their item time.
+_PING_NAME = message_name(MessageId.SIMPLE_PING_RESULT)
 
-    Corrupt pings are skipped and counted (``report.corrupt_pings``), never raised.
+
+@dataclass(frozen=True)
+class CaptureClock:
+    """How a raw capture's pings are stamped (it has no receipt times): its first ping at
+    ``start`` (UNIX s, the boat computer's clock, as a log's item times are), the others
+    ``1 / rate_hz`` apart, or, without a rate, apart as the sonar's own clock says
+    (SimplePingResult v2's pingStartTime, seconds since power-up; v1's has no documented
+    unit, so a v1 capture needs the rate)."""
+
+    start: float
+    rate_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.start):
+            raise OculusFormatError(f"capture start time must be finite, got {self.start}")
+        if self.rate_hz is not None and not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise OculusFormatError(f"capture ping rate must be > 0 Hz, got {self.rate_hz}")
+
+
+class _CaptureStamps:
+    """A CaptureClock applied to one capture, ping by ping."""
+
+    def __init__(self, path: Path, clock: CaptureClock) -> None:
+        self.path, self.clock = path, clock
+        self.first: float | None = None
+        self.last = -math.inf
+
+    def stamp(self, info: PingInfo, index: int) -> float:
+        """The time of the capture's ping ``index`` (counting every SimplePingResult, the
+        corrupt ones too: they hold their place in the rate's sequence); OculusFormatError
+        when its clock cannot give one (a v1 ping without a rate, a clock stepping back)."""
+        clock = self.clock
+        if clock.rate_hz is not None:
+            return clock.start + index / clock.rate_hz
+        own = info.ping_start_time
+        if info.version != 2 or not math.isfinite(own):
+            raise OculusFormatError(
+                f"{self.path}: SimplePingResult v1 pings carry no clock with a documented "
+                "unit: give the capture's ping rate (--sonar-rate)"
+            )
+        if own < self.last:
+            raise OculusFormatError(
+                f"{self.path}: the sonar's clock steps back at ping {info.ping_id} "
+                f"({self.last:.3f} -> {own:.3f} s since power-up: a restart); give the "
+                "capture's ping rate (--sonar-rate) or split the capture there"
+            )
+        self.last = own
+        self.first = own if self.first is None else self.first
+        return clock.start + (own - self.first)
+
+
+def iter_pings(
+    path: PathLike, report: LogReadReport | None = None, clock: CaptureClock | None = None
+) -> Iterator[Ping]:
+    """The SimplePingResults of a v1 or v2 log as Pings stamped with their item time, or
+    of a raw capture stamped by ``clock`` (NaN times without one).
+
+    Corrupt pings are skipped and counted (``report.corrupt_pings``), never raised; a
+    capture whose clock cannot stamp a ping raises OculusFormatError.
     """
+    path = Path(path)
     report = LogReadReport() if report is None else report
+    stamps: _CaptureStamps | None = None
     for item in iter_log_items(path, report):
-        if _ping_info(item, report) is None:
+        info = _ping_info(item, report)
+        if info is None:
             continue
+        when = item.time
+        if report.version == RAW_CAPTURE and clock is not None:
+            stamps = _CaptureStamps(path, clock) if stamps is None else stamps
+            when = stamps.stamp(info, report.messages[_PING_NAME] - 1)
         try:
-            ping = parse_simple_ping(item.message, item.time)
+            ping = parse_simple_ping(item.message, when)
         except OculusFormatError as e:
             report.corrupt(str(e))
             continue
@@ -429,10 +540,15 @@ def iter_pings(path: PathLike, report: LogReadReport | None = None) -> Iterator[
 
 
 def summarize_oculus_log(path: PathLike) -> dict[str, object]:
-    """What a log holds, for ``seamap info`` (JSON-ready; streams, keeps no image).
+    """What a log or raw capture holds, for ``seamap info`` (JSON-ready; streams, keeps no
+    image).
 
-    count: decodable pings; first/last_time: earliest/latest ping time (UNIX s);
-    range_m: [min, max] of nRanges * rangeResolution (metres); frequencies_hz rounded to 1 Hz.
+    count: decodable pings; first/last_time: earliest/latest ping time (UNIX s; None for a
+    raw capture, which has no receipt times); range_m: [min, max] of nRanges *
+    rangeResolution (metres); bearings_deg: [min, max] of the bearing tables (degrees,
+    positive to starboard); frequencies_hz rounded to 1 Hz; gain_rows: whether pings carry
+    the per-row gain prefix; msg_versions: the headers' msgVersion as sent (v1 pings
+    often say 0), ping_versions the layouts they were read as.
     """
     report = LogReadReport()
     first_time: float | None = None
@@ -444,13 +560,17 @@ def summarize_oculus_log(path: PathLike) -> dict[str, object]:
     freqs: set[int] = set()
     bits: set[int] = set()
     layouts: set[int] = set()
+    msg_versions: set[int] = set()
+    gain_rows: set[bool] = set()
+    bearings = [math.inf, -math.inf]
     for item in iter_log_items(path, report):
         info = _ping_info(item, report)
         if info is None:
             continue
         report.pings += 1
-        first_time = item.time if first_time is None else min(first_time, item.time)
-        last_time = item.time if last_time is None else max(last_time, item.time)
+        if math.isfinite(item.time):
+            first_time = item.time if first_time is None else min(first_time, item.time)
+            last_time = item.time if last_time is None else max(last_time, item.time)
         beams.add(info.n_beams)
         ranges.add(info.n_ranges)
         range_m.add(info.n_ranges * info.range_resolution_m)
@@ -458,22 +578,29 @@ def summarize_oculus_log(path: PathLike) -> dict[str, object]:
         freqs.add(round(info.frequency_hz))
         bits.add(8 * info.sample_size)
         layouts.add(info.version)
+        msg_versions.add(info.header.msg_version)
+        gain_rows.add(info.has_gain_rows)
+        table = struct.unpack_from(f"<{info.n_beams}h", item.message, info.struct_size)
+        bearings = [min(bearings[0], min(table) / 100.0), max(bearings[1], max(table) / 100.0)]
     skipped = dict(report.skipped_items)
     if report.corrupt_pings:
         skipped["corrupt ping"] = report.corrupt_pings
     return {
         "kind": "oculus",
-        "format": f"oculus-v{report.version}",
+        "format": report.format,
         "count": report.pings,
         "first_time": first_time,
         "last_time": last_time,
         "beams": sorted(beams),
         "ranges": sorted(ranges),
         "range_m": [min(range_m), max(range_m)] if range_m else None,
+        "bearings_deg": bearings if report.pings else None,
         "modes": sorted(modes),
         "frequencies_hz": sorted(freqs),
         "sample_bits": sorted(bits),
+        "gain_rows": sorted(gain_rows),
         "ping_versions": sorted(layouts),
+        "msg_versions": sorted(msg_versions),
         "items": report.items,
         "messages": dict(sorted(report.messages.items())),
         "skipped": skipped,

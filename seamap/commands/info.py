@@ -34,11 +34,18 @@ def detect_log_kind(path: Path) -> str:
         raise SeamapError(f"{path}: cannot read ({exc.strerror})") from None
     if head.startswith(b"\x44\x33\x22\x11") or head.startswith(b"SQLite format 3\x00"):
         return "oculus"
+    from drivers.oculus.logfile import is_raw_capture_start
+
+    if is_raw_capture_start(head):
+        return "oculus"  # a raw network capture: Oculus messages, no log framing
     if head.startswith(b"\xa3\x95") or (len(head) > 8 and head[8] in (0xFE, 0xFD)):
         return "mavlink"
     if not head:
         raise SeamapError(f"{path}: empty file, not a log")
-    raise SeamapError(f"{path}: not an Oculus or MAVLink log (unrecognised first bytes)")
+    raise SeamapError(
+        f"{path}: not an Oculus log or capture, nor a MAVLink log (unrecognised first bytes "
+        f"{head[:8].hex(' ')})"
+    )
 
 
 def summarize(path: Path) -> dict[str, Any]:
@@ -65,27 +72,40 @@ def format_summary(path: Path, summary: dict[str, Any]) -> str:
     lines = [f"{path}: {summary.get('format', summary['kind'])}"]
     first, last = summary.get("first_time"), summary.get("last_time")
     span = f"{last - first:.1f} s" if first is not None and last is not None else "-"
-    lines.append(f"  first time: {_fmt_time(first)}")
-    lines.append(f"  last time:  {_fmt_time(last)}  (span {span})")
+    if summary.get("format") == "oculus-raw":
+        lines.append(f"  {'times:':<15} none (a raw capture has no receipt stamps)")
+    else:
+        lines.append(f"  {'first time:':<15} {_fmt_time(first)}")
+        lines.append(f"  {'last time:':<15} {_fmt_time(last)}  (span {span})")
     if summary["kind"] == "oculus":
-        lines.append(f"  pings:      {summary['count']}")
+        lines.append(f"  {'pings:':<15} {summary['count']}")
         for key, label in (
             ("beams", "beams"),
             ("ranges", "ranges"),
             ("range_m", "range (m)"),
+            ("bearings_deg", "bearings (deg)"),
             ("modes", "modes"),
             ("frequencies_hz", "frequency (Hz)"),
             ("sample_bits", "sample bits"),
+            ("gain_rows", "gain rows"),
+            ("msg_versions", "msgVersion"),
         ):
-            if key in summary:
-                lines.append(f"  {label + ':':<11} {summary[key]}")
+            value = summary.get(key)
+            if key in ("bearings_deg", "range_m") and value:
+                low, high = value
+                sign = "+" if key == "bearings_deg" else ""
+                text = f"{low:{sign}.3f}" if low == high else f"{low:{sign}.3f} .. {high:{sign}.3f}"
+                lines.append(f"  {label + ':':<15} {text}")
+            elif key in summary:
+                lines.append(f"  {label + ':':<15} {value}")
     else:
-        lines.append(f"  messages:   {summary['count']}")
+        lines.append(f"  {'messages:':<15} {summary['count']}")
         if "autopilot" in summary:
-            lines.append(f"  autopilot:  {summary['autopilot']}")
+            lines.append(f"  {'autopilot:':<15} {summary['autopilot']}")
         if summary.get("soundings_source"):
             lines.append(
-                f"  soundings:  {summary['soundings']} ({summary['soundings_source']}, downward)"
+                f"  {'soundings:':<15} {summary['soundings']} "
+                f"({summary['soundings_source']}, downward)"
             )
     messages = summary.get("messages") or {}
     if messages:

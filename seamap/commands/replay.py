@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import math
 import sys
 import time
@@ -53,7 +54,31 @@ def register(subparsers: Any) -> None:
         "--sonar",
         type=Path,
         action="append",
-        help="Oculus log (.oculus); repeat for the segments of one survey, in time order",
+        help=(
+            "Oculus log (.oculus v1 or v2) or raw network capture (Oculus messages back to "
+            "back, as liboculus and driver tools record them; needs --sonar-start); repeat "
+            "for the segments of one survey, in time order"
+        ),
+    )
+    parser.add_argument(
+        "--sonar-start",
+        type=_when,
+        default=None,
+        metavar="TIME",
+        help=(
+            "a raw capture's first ping time (it has no receipt stamps): UNIX seconds or an "
+            "ISO 8601 time with its zone (2026-05-03T10:15:02.250Z), the navigation log's clock"
+        ),
+    )
+    parser.add_argument(
+        "--sonar-rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help=(
+            "a raw capture's ping rate: pings 1/HZ apart (default: as the sonar's own clock "
+            "in SimplePingResult v2 says; v1 pings need it)"
+        ),
     )
     parser.add_argument(
         "--nav",
@@ -98,6 +123,25 @@ def register(subparsers: Any) -> None:
         ),
     )
     parser.set_defaults(handler=run)
+
+
+def _when(text: str) -> float:
+    """A time given on the command line: UNIX seconds, or ISO 8601 with its zone."""
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        stamp = dt.datetime.fromisoformat(text.replace("Z", "+00:00").replace("z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is neither UNIX seconds nor an ISO 8601 time"
+        ) from None
+    if stamp.tzinfo is None:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} has no zone: add Z (UTC) or an offset such as +02:00"
+        )
+    return stamp.timestamp()
 
 
 class Progress:
@@ -157,6 +201,15 @@ def run(args: argparse.Namespace) -> int:
                     raise SeamapError(f"{path}: is a directory, not a {label}")
     if args.workers is not None and args.workers < 0:
         raise SeamapError(f"--workers must be 0 or more, got {args.workers}")
+    clock = None
+    if args.sonar_start is not None:
+        if args.survey is not None:
+            raise SeamapError("--sonar-start stamps a raw capture given by --sonar, not --survey")
+        from drivers.oculus.logfile import CaptureClock
+
+        clock = CaptureClock(args.sonar_start, args.sonar_rate)
+    elif args.sonar_rate is not None:
+        raise SeamapError("--sonar-rate spaces a raw capture's pings: give --sonar-start too")
     scorer = truth_scorer(args.truth) if args.truth is not None else None
     progress = Progress()
     try:
@@ -182,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=progress,
                 area=args.area,
                 workers=args.workers,
+                clock=clock,
             )
     finally:
         progress.done()

@@ -16,6 +16,7 @@ import rasterio
 import shapely
 from pyproj import Transformer
 
+from drivers.oculus import iter_log_items
 from seamap.cli import main
 from tools.evaluation.metrics import locate_quadrats, quadrat_spacing_error
 from tools.evaluation.truth import quadrats_of
@@ -398,3 +399,37 @@ def test_a_sonar_that_never_reaches_the_seabed_ends_in_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no ping shows the seabed" in err[0], err
     assert "range_m" in err[0] and "sonar.oculus" in err[0]
+
+
+def _trajectory(path: Path) -> np.ndarray:
+    return np.loadtxt(path, delimiter=",", skiprows=1)
+
+
+def test_a_raw_capture_replays_as_its_log_does(
+    survey: Path, result: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The survey's pings as a raw network capture (no log framing, no receipt times),
+    stamped from the first ping's time and the sonar's own clock: the same frames mapped
+    to the same places (the stamps differ from the receipt times by the link's jitter)."""
+    items = list(iter_log_items(survey / "sonar.oculus"))
+    capture = tmp_path / "capture.raw"
+    capture.write_bytes(b"".join(item.message for item in items))
+    common = ["--nav", str(survey / "nav.tlog"), "--config", str(survey / "site.toml")]
+    out = tmp_path / "from-capture"
+    args = ["replay", "--sonar", str(capture), *common, "--out", str(out)]
+    assert main([*args, "--sonar-start", repr(items[0].time)]) == 0
+    capsys.readouterr()
+    logged, captured = _trajectory(result / "trajectory.csv"), _trajectory(out / "trajectory.csv")
+    assert captured.shape == logged.shape
+    np.testing.assert_allclose(captured[:, 0], logged[:, 0], atol=0.01)  # stamps: jitter only
+    shift = np.hypot(captured[:, 3] - logged[:, 3], captured[:, 4] - logged[:, 4])
+    assert float(np.median(shift)) < 0.01 and float(shift.max()) < 0.05
+    with rasterio.open(out / "mosaic.tif") as mosaic:
+        assert np.count_nonzero(mosaic.read(1)) > 0
+    # Without a start time, or with one for a log that has its own: one line each.
+    logged_with_start = ["replay", "--sonar", str(survey / "sonar.oculus"), *common]
+    logged_with_start += ["--out", str(tmp_path / "o"), "--sonar-start", "2026-05-03T10:15:02Z"]
+    for bad in (args, logged_with_start):
+        assert main(bad) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--sonar-start" in err[0], err

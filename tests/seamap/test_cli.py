@@ -41,8 +41,8 @@ def test_help_lists_the_subcommands() -> None:
     ("content", "reason"),
     [
         (b"", "empty file"),
-        (b"hello, this is not a log\n" * 10, "not an Oculus or MAVLink log"),
-        (b"\x89PNG\r\n\x1a\n" + bytes(200), "not an Oculus or MAVLink log"),
+        (b"hello, this is not a log\n" * 10, "not an Oculus log or capture, nor a MAVLink log"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(200), "not an Oculus log or capture, nor a MAVLink log"),
     ],
 )
 def test_info_on_a_non_log_is_one_line_and_status_2(
