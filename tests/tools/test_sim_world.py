@@ -95,6 +95,12 @@ def test_wide_draws_span_the_world_and_leave_the_old_draws():
     assert 15 <= sum(d.echosounder for d in days) <= 35
     assert 8 <= sum(d.gnss_kind == "rtk" for d in days) <= 26
     assert all(d.gps_rate_hz in (5.0, 10.0) for d in days if d.gnss_kind == "rtk")
+    # How the sonar sends its pings (a stream of its own: the draws above unchanged).
+    assert 8 <= sum(d.ping_layout == 1 for d in days) <= 26
+    assert 8 <= sum(d.sample_bits == 16 for d in days) <= 26
+    assert 8 <= sum(not d.gain_rows for d in days) <= 26
+    formats = {(d.ping_layout, d.sample_bits, d.gain_rows) for d in days}
+    assert len(formats) >= 6  # of the 8
     undulating = values("undulation_amplitude_m")
     assert 15 <= np.count_nonzero(undulating) <= 35 and undulating.max() <= 0.2
     assert np.all(undulating <= values("undulation_wavelength_m") / 160.0 + 1e-12)
@@ -338,3 +344,37 @@ def test_a_wide_field_day_is_deterministic(tmp_path: Path):
     record = json.loads((a.out / "truth.json").read_text())["field_day"]
     assert record["wide"]["draws"]["seabed_type"] in SEABED_TYPES
     assert "range_m" in record["explicit"] and "water_depth_m" in record["drawn"]
+
+
+@pytest.mark.parametrize(
+    ("layout", "bits", "gains"), [(1, 16, False), (1, 8, True), (2, 16, True), (2, 8, False)]
+)
+def test_the_sonar_sends_its_pings_as_the_day_says(
+    tmp_path: Path, layout: int, bits: int, gains: bool
+) -> None:
+    """The receiver's formats reach the log as a real unit writes them: v1 with msgVersion
+    0, 16-bit samples the same echo as the 8-bit ones, gain rows or none."""
+    from drivers.oculus import iter_pings, summarize_oculus_log
+
+    common = {**FAST, "max_pings": 4, "randomise": False}
+    simulate("quadrats", 3, tmp_path / "a", **common, ping_layout=layout, sample_bits=bits,
+             gain_rows=gains)  # fmt: skip
+    simulate("quadrats", 3, tmp_path / "b", **common)  # v2, 8-bit, gain rows
+    summary = summarize_oculus_log(tmp_path / "a" / "sonar.oculus")
+    assert summary["ping_versions"] == [layout]
+    assert summary["msg_versions"] == [0 if layout == 1 else 2]
+    assert summary["sample_bits"] == [bits] and summary["gain_rows"] == [gains]
+    for got, base in zip(
+        iter_pings(tmp_path / "a" / "sonar.oculus"),
+        iter_pings(tmp_path / "b" / "sonar.oculus"),
+        strict=True,
+    ):
+        assert got.time == base.time and got.ping_id == base.ping_id
+        assert (got.gains is not None) == gains and (got.heading_rad is not None) == (layout == 2)
+        if bits == 16:
+            assert got.image.dtype == np.uint16
+            # The same echo, 257 times finer: within half an 8-bit step of the 8-bit image.
+            np.testing.assert_allclose(got.image / 257.0, base.image, atol=0.5 + 1e-3)
+            assert np.count_nonzero(got.image % 257) > got.image.size // 2
+        else:
+            np.testing.assert_array_equal(got.image, base.image)

@@ -53,6 +53,9 @@ exactly as it was):
   the survey's altitude, as long as ``clip(max(16 m, 2 swaths, 50 s of travel), 16 m,
   60 m)``, so that a neighbouring lane sees the same seabed and the survey takes about
   3-5 minutes. A field the caller pins keeps its value and the derived fields follow it.
+- ``wide`` scenarios' receiver (child 3, ``draw_receiver``): how the sonar sends its
+  pings, as the units in the field do: SimplePingResult v1 (older firmware, msgVersion 0,
+  no attitude) a third of the days, 16-bit samples a third, no gain rows a third.
 """
 
 from __future__ import annotations
@@ -249,6 +252,17 @@ def draw_wide(s: Scenario, rng: np.random.Generator) -> tuple[dict[str, Any], di
     return raw, out
 
 
+def draw_receiver(s: Scenario, rng: np.random.Generator) -> tuple[dict[str, Any], dict[str, Any]]:
+    """How the wide day's sonar sends its pings (child 3, module doc): its raw draws and
+    the scenario fields they give, the pinned ones left out."""
+    raw = {
+        "ping_layout": 1 if rng.random() < 1.0 / 3.0 else 2,
+        "sample_bits": 16 if rng.random() < 1.0 / 3.0 else 8,
+        "gain_rows": bool(rng.random() >= 1.0 / 3.0),
+    }
+    return raw, {k: v for k, v in raw.items() if k not in s.explicit}
+
+
 def draw_field_day(s: Scenario, rng: np.random.Generator) -> tuple[Scenario, dict[str, Any]]:
     """The scenario of the day and the ``field_day`` record of truth.json: ``randomised``,
     ``explicit`` (the fields the caller pinned), ``drawn`` (each drawn field's value as
@@ -261,6 +275,9 @@ def draw_field_day(s: Scenario, rng: np.random.Generator) -> tuple[Scenario, dic
     if s.wide and s.randomise:
         wide_raw, wide_fields = draw_wide(s, child_rng(rng, 1))
         applied.update(wide_fields)
+        receiver_raw, receiver_fields = draw_receiver(s, child_rng(rng, 3))
+        wide_raw.update(receiver_raw)
+        applied.update(receiver_fields)
     sensor_rng = child_rng(rng, 2)
     sensor = {d.field: d.sample(sensor_rng) for d in SENSOR_DAY}
     day = dataclasses.replace(s, **applied)

@@ -166,15 +166,16 @@ class PingSource:
         return int(min((r for r in PingRate if r.hz > 0), key=lambda r: abs(r.hz - hz)))
 
     def __iter__(self) -> Iterator[bytes]:
-        """Each ping's SimplePingResult v2 message (with gain rows), in ping order; its
-        receive time is ``plan.receive[k]``."""
+        """Each ping's SimplePingResult message (the scenario's ``ping_layout``,
+        ``sample_bits`` and ``gain_rows``), in ping order; its receive time is
+        ``plan.receive[k]``."""
         s, model = self.scenario, self.frames.model
         power_on = s.start_time - s.sonar_uptime_s
         rate_code = self.rate_code
         for k in range(len(self.plan)):
             pose = self.frames.pose(k)
             assist = float(self.assist_db[k])
-            image = render_ping(model, pose, self.seabed, self.speckle_rng, assist)
+            image = render_ping(model, pose, self.seabed, self.speckle_rng, assist, s.sample_bits)
             heading, pitch, roll = _sonar_attitude(s, self.site, pose, self.attitude_rng)
             depth = float(pose.position_ned[2])
             if s.tide_rate_mps:  # below the risen (fallen) surface
@@ -203,4 +204,11 @@ class PingSource:
                     "salinity_ppt": s.salinity_ppt,
                 },
             )
-            yield build_simple_ping(ping, version=2, send_gain=True, ping_rate=rate_code)
+            # Older firmware sends v1 pings with msgVersion 0 (the real ones do).
+            yield build_simple_ping(
+                ping,
+                version=s.ping_layout,
+                send_gain=s.gain_rows,
+                ping_rate=rate_code,
+                msg_version=0 if s.ping_layout == 1 else 2,
+            )

@@ -267,6 +267,17 @@ class Scenario:
     gain_percent: float = 50.0
     gamma: int = 127
     """Gamma correction byte (127 ~ exponent 0.5) applied before 8-bit quantisation."""
+    ping_layout: int = 2
+    """The SimplePingResult layout the sonar sends (its firmware): 2, with the sonar's
+    heading, pitch and roll, or 1 (older firmware), whose pings say msgVersion 0 as the
+    real ones do (PROTOCOLS.md; ``wide`` days: 1 a third of the days)."""
+    sample_bits: int = 8
+    """The image's samples: 8, or 16 (the fire's 16-bit flag: the same echo through the
+    same gamma quantised 257 times finer; ``wide`` days: 16 a third of the days)."""
+    gain_rows: bool = True
+    """Each image row prefixed by its 4-byte gain word (the fire's send-gain flag; without
+    it the gain assist's level is in the pixels and nowhere else; ``wide`` days: off a
+    third of the days)."""
     speed_of_sound_mps: float = 1510.0
     salinity_ppt: float = 12.0
     water_temperature_c: float = 24.0
@@ -745,6 +756,10 @@ def _validate(s: Scenario) -> None:
         problems.append(f"tilt_deg {s.tilt_deg} is not in (0, 60)")
     if s.seabed_type not in SEABED_TYPES:
         problems.append(f"seabed_type {s.seabed_type!r} is not one of {', '.join(SEABED_TYPES)}")
+    if s.ping_layout not in (1, 2):
+        problems.append(f"ping_layout {s.ping_layout} is not 1 or 2 (SimplePingResult v1/v2)")
+    if s.sample_bits not in (8, 16):
+        problems.append(f"sample_bits {s.sample_bits} is not 8 or 16")
     if s.gnss_kind not in GNSS_KINDS:
         problems.append(f"gnss_kind {s.gnss_kind!r} is not one of {', '.join(GNSS_KINDS)}")
     if abs(s.tide_rate_mps) > 1e-3:

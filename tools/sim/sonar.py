@@ -385,8 +385,10 @@ def render_ping(
     seabed: Seabed,
     rng: np.random.Generator | None,
     assist_db: float = 0.0,
-) -> npt.NDArray[np.uint8]:
-    """One ping's 8-bit image (n_ranges, n_beams), row 0 nearest. ``rng`` None renders the
+    bits: int = 8,
+) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+    """One ping's image (n_ranges, n_beams), row 0 nearest, 8-bit or (``bits`` 16) the
+    same through the same gamma quantised 257 times finer. ``rng`` None renders the
     noiseless mean image (no speckle, no noise floor) for geometry checks."""
     echo, r = _mean_echo(model, pose, seabed)
     if rng is not None:
@@ -407,4 +409,6 @@ def render_ping(
     pixels = np.float32(255.0) * np.power(
         np.minimum(echo * np.float32(1.0 / model.full_scale), np.float32(1.0)), exponent
     )
+    if bits == 16:
+        return (pixels * np.float32(257.0) + np.float32(0.5)).astype(np.uint16)
     return (pixels + np.float32(0.5)).astype(np.uint8)
