@@ -11,6 +11,11 @@ server-sent events. Routes:
   is fetched from elsewhere);
 - ``/api/state``: the view as JSON (``WebView.snapshot``);
 - ``/api/tile/{vehicle}/{survey}/{col}/{row}.png?v=VERSION``: a tile's PNG as received;
+- ``/api/tile/{vehicle}/{survey}/{level}/{col}/{row}.png?v=STAMP``: a tile of the survey's
+  overview pyramid (``seamap.shore.pyramid``: level 0 the tiles as received, level L
+  2^L x 2^L of them merged into one of the same size); STAMP is the sum of (version + 1)
+  over the level-0 tiles under it, which the page computes from the tiles it knows. Built
+  on a worker thread when stale;
 - ``/api/coverage/{vehicle}/{survey}.png?v=VERSION``: a survey's coverage raster (PNG as
   received; RGBA, one pixel a cell, north-up);
 - ``/api/events``: server-sent events. The stream opens with a ``state`` event (the
@@ -29,6 +34,7 @@ import contextlib
 import json
 import math
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +43,7 @@ from aiohttp import web
 
 from drivers.errors import SeamapError
 from drivers.zenoh_io import CoverageInfo, TileInfo, id_problem
+from seamap.shore.pyramid import Pyramid
 from seamap.shore.state import ShoreEvent
 
 STATIC_DIR = Path(__file__).with_name("static")
@@ -48,6 +55,8 @@ MAX_TRACK_POINTS = 20_000
 """Track points kept per vehicle for the page; beyond it the track is thinned by half
 (the full track is in ``track.geojson``)."""
 START_TIMEOUT_S = 10.0
+PYRAMID_WORKERS = 2
+"""Threads building overview tiles: the page's requests wait for them, the loop never."""
 
 
 def parse_web_address(text: str) -> tuple[str, int]:
@@ -120,6 +129,8 @@ class _Vehicle:
     """By survey, by (col, row): the latest info and PNG."""
     coverage: dict[str, _Coverage] = field(default_factory=dict)
     """By survey: its latest summary and raster."""
+    pyramids: dict[str, Pyramid] = field(default_factory=dict)
+    """By survey: its overview levels over ``tiles``."""
 
 
 class WebView:
@@ -141,6 +152,8 @@ class WebView:
         if event.kind == "tile" and event.info is not None and not id_problem(event.survey):
             info = event.info
             held.tiles.setdefault(event.survey, {})[(event.col, event.row)] = (info, event.payload)
+            pyramid = held.pyramids.setdefault(event.survey, Pyramid(info.size_px))
+            pyramid.put(event.col, event.row, info.version, event.payload)
             self.epsg = self.epsg if self.epsg is not None else info.epsg
             data.update(_tile_json(event.survey, event.col, event.row, info))
         elif event.kind == "pose" and event.point is not None:
@@ -229,6 +242,10 @@ class WebView:
     def tile(self, vehicle: str, survey: str, col: int, row: int) -> tuple[TileInfo, bytes] | None:
         held = self.vehicles.get(vehicle)
         return held.tiles.get(survey, {}).get((col, row)) if held is not None else None
+
+    def pyramid(self, vehicle: str, survey: str) -> Pyramid | None:
+        held = self.vehicles.get(vehicle)
+        return held.pyramids.get(survey) if held is not None else None
 
     def coverage_raster(self, vehicle: str, survey: str) -> tuple[CoverageInfo, bytes] | None:
         held = self.vehicles.get(vehicle)
@@ -332,6 +349,7 @@ class WebServer:
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
         self._error: str | None = None
+        self._builders = ThreadPoolExecutor(PYRAMID_WORKERS, thread_name_prefix="shore-pyramid")
 
     # --- life cycle (the caller's thread) ---------------------------------------------------
 
@@ -351,6 +369,7 @@ class WebServer:
             with contextlib.suppress(RuntimeError):  # the loop has already closed
                 loop.call_soon_threadsafe(self._shutdown)
             thread.join(timeout=START_TIMEOUT_S)
+        self._builders.shutdown(wait=False, cancel_futures=True)
 
     def on_event(self, event: ShoreEvent) -> None:
         """Hand a station event to the loop (called on the station's run thread)."""
@@ -395,6 +414,7 @@ class WebServer:
         app.router.add_static("/static/", STATIC_DIR, append_version=False)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/api/tile/{vehicle}/{survey}/{col}/{row}.png", self._tile)
+        app.router.add_get("/api/tile/{vehicle}/{survey}/{level}/{col}/{row}.png", self._level_tile)
         app.router.add_get("/api/coverage/{vehicle}/{survey}.png", self._coverage)
         app.router.add_get("/api/events", self._events)
         app.router.add_get("/files/{vehicle}/track.geojson", self._track_file)
@@ -446,6 +466,25 @@ class WebServer:
             raise web.HTTPNotFound()
         info, png = held
         return _png_response(request, png, info.version, "X-Tile-Version")
+
+    async def _level_tile(self, request: web.Request) -> web.Response:
+        match = request.match_info
+        try:
+            level, col, row = int(match["level"]), int(match["col"]), int(match["row"])
+        except ValueError:
+            raise web.HTTPNotFound() from None
+        pyramid = self.view.pyramid(match["vehicle"], match["survey"])
+        if pyramid is None or pyramid.stamp(level, col, row) is None:
+            raise web.HTTPNotFound()
+        loop = asyncio.get_running_loop()
+        try:
+            held = await loop.run_in_executor(self._builders, pyramid.tile, level, col, row)
+        except RuntimeError:  # closing: the workers are gone
+            raise web.HTTPServiceUnavailable() from None
+        if held is None:
+            raise web.HTTPNotFound()
+        stamp, png = held
+        return _png_response(request, png, stamp, "X-Tile-Stamp")
 
     async def _coverage(self, request: web.Request) -> web.Response:
         match = request.match_info
