@@ -67,15 +67,18 @@ def merge_children(children: dict[Key, GreyAlpha], size_px: int) -> GreyAlpha:
     half = size_px // 2
     out = np.zeros((size_px, size_px, 2), np.uint8)
     for (dx, dy), child in children.items():
-        grey = child[:, :, 0].astype(np.float32)
-        alpha = child[:, :, 1].astype(np.float32)
-        alpha_sum = alpha.reshape(half, 2, half, 2).sum(axis=(1, 3))
-        weighted = (grey * alpha).reshape(half, 2, half, 2).sum(axis=(1, 3))
-        mean = np.divide(weighted, alpha_sum, out=np.zeros_like(weighted), where=alpha_sum > 0)
+        alpha = child[:, :, 1].astype(np.uint32)
+        weighted = child[:, :, 0] * alpha
+        # Sums over each 2 x 2 block, in integers (exact).
+        alpha_sum = alpha[0::2, 0::2] + alpha[1::2, 0::2] + alpha[0::2, 1::2] + alpha[1::2, 1::2]
+        grey_sum = (
+            weighted[0::2, 0::2] + weighted[1::2, 0::2] + weighted[0::2, 1::2] + weighted[1::2, 1::2]
+        )
+        mean = (grey_sum + alpha_sum // 2) // np.maximum(alpha_sum, 1)  # rounded
         y0, x0 = (0 if dy else half), (half if dx else 0)
         quarter = out[y0 : y0 + half, x0 : x0 + half]
-        quarter[:, :, 0] = np.clip(np.rint(mean), 0, 255)
-        quarter[:, :, 1] = np.clip(np.ceil(alpha_sum / 4 - 1e-4), 0, 255)
+        quarter[:, :, 0] = mean
+        quarter[:, :, 1] = (alpha_sum + 3) // 4  # rounded up: any data keeps some alpha
     return out
 
 
@@ -93,6 +96,31 @@ class Pyramid:
         """By level (1 up), by key: the stamp it was built at, its PNG."""
         self.builds = 0
         """Tiles of levels 1 and up built so far."""
+
+    def top_level(self) -> int:
+        """The finest level at which the survey lies within a 2 x 2 of tiles: the
+        coarsest a page showing it whole is likely to ask for."""
+        with self._lock:
+            for level in range(1, MAX_LEVEL + 1):
+                if len(self._stamps[level]) <= 4:
+                    return level
+        return MAX_LEVEL
+
+    def warm(self) -> int:
+        """Build every stale tile of levels 1 to ``top_level``, finest first (so each
+        level is made from fresh children); how many were built."""
+        built = 0
+        for level in range(1, self.top_level() + 1):
+            with self._lock:
+                stale = [
+                    key
+                    for key, stamp in self._stamps[level].items()
+                    if self._built[level].get(key, (None,))[0] != stamp
+                ]
+            for key in stale:
+                self.tile(level, *key)
+                built += 1
+        return built
 
     def put(self, col: int, row: int, version: int, png: bytes) -> None:
         """Hold a level-0 tile (newer than the one held: the caller checks) and mark its

@@ -57,6 +57,10 @@ MAX_TRACK_POINTS = 20_000
 START_TIMEOUT_S = 10.0
 PYRAMID_WORKERS = 2
 """Threads building overview tiles: the page's requests wait for them, the loop never."""
+WARM_EVERY_S = 5.0
+"""At most this often, the overview tiles that new tiles made stale are built ahead of
+any page's asking (up to each survey's ``Pyramid.top_level``), so a page opened on the
+whole site finds them made; one worker does it, the other stays for the pages."""
 
 
 def parse_web_address(text: str) -> tuple[str, int]:
@@ -350,6 +354,8 @@ class WebServer:
         self._ready = threading.Event()
         self._error: str | None = None
         self._builders = ThreadPoolExecutor(PYRAMID_WORKERS, thread_name_prefix="shore-pyramid")
+        self._warm_due: asyncio.TimerHandle | None = None
+        self._warming = False
 
     # --- life cycle (the caller's thread) ---------------------------------------------------
 
@@ -439,12 +445,40 @@ class WebServer:
             change = self.view.apply(event)
         except Exception:  # the station hands over what it took; stay up whatever it is
             return
-        if change is None or not self._pages:
+        if change is None:
+            return
+        if change["event"] == "tile" and self._warm_due is None:
+            assert self._loop is not None
+            self._warm_due = self._loop.call_later(WARM_EVERY_S, self._warm)
+        if not self._pages:
             return
         message = _sse(change["event"], change["data"])
         for page in self._pages:
             if not page.push(message):
                 self.stats.resyncs += 1
+
+    def _warm(self) -> None:
+        """Build the stale overview tiles on a worker (one warm-up at a time; tiles that
+        come meanwhile wait for the next)."""
+        self._warm_due = None
+        if self._warming:
+            assert self._loop is not None
+            self._warm_due = self._loop.call_later(WARM_EVERY_S, self._warm)
+            return
+        pyramids = [p for held in self.view.vehicles.values() for p in held.pyramids.values()]
+
+        def warm_all() -> None:
+            try:
+                for pyramid in pyramids:
+                    pyramid.warm()
+            finally:
+                self._warming = False
+
+        self._warming = True
+        try:
+            self._builders.submit(warm_all)
+        except RuntimeError:  # closing
+            self._warming = False
 
     # --- routes -------------------------------------------------------------------------------
 
