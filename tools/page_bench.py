@@ -102,7 +102,7 @@ def site_tiles(
             y = np.broadcast_to(north - SOUTH, (size_px, size_px))
             in_lane = (x % 10.0) < 8.0
             nadir = np.abs((x % 10.0) - 4.0) < 0.15
-            holes = cv2.resize(rng.random((24, 24), np.float32), shape, interpolation=cv2.INTER_LINEAR)
+            holes = cv2.resize(rng.random((24, 24), np.float32), shape)
             seen = in_lane & ~nadir & (holes > 0.1) & (x >= 0) & (x < site_m)
             seen &= (y >= 0) & (y < site_m)
             values[~seen] = 0
@@ -253,8 +253,11 @@ def one_run(url: str, count: int, site: tuple[float, ...], width: int, height: i
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m tools.page_bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = argparse.ArgumentParser(
+        prog="python -m tools.page_bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--site-m", type=float, default=100.0, help="site side, metres")
     parser.add_argument("--res-m", type=float, default=0.02, help="tile pixel, metres")
     parser.add_argument("--size-px", type=int, default=256, help="tile side, pixels")

@@ -58,6 +58,11 @@ def encode_grey_alpha(tile: GreyAlpha) -> bytes:
     return out.getvalue()
 
 
+def _block_sums(values: npt.NDArray[np.uint32]) -> npt.NDArray[np.uint32]:
+    """The sum of each 2 x 2 block."""
+    return values[0::2, 0::2] + values[1::2, 0::2] + values[0::2, 1::2] + values[1::2, 1::2]
+
+
 def merge_children(children: dict[Key, GreyAlpha], size_px: int) -> GreyAlpha:
     """One tile of the level above from its (up to four) children, keyed by their
     (dx, dy) offset: dx 0 west, 1 east; dy 0 south, 1 north (rows grow northward, the
@@ -70,10 +75,8 @@ def merge_children(children: dict[Key, GreyAlpha], size_px: int) -> GreyAlpha:
         alpha = child[:, :, 1].astype(np.uint32)
         weighted = child[:, :, 0] * alpha
         # Sums over each 2 x 2 block, in integers (exact).
-        alpha_sum = alpha[0::2, 0::2] + alpha[1::2, 0::2] + alpha[0::2, 1::2] + alpha[1::2, 1::2]
-        grey_sum = (
-            weighted[0::2, 0::2] + weighted[1::2, 0::2] + weighted[0::2, 1::2] + weighted[1::2, 1::2]
-        )
+        alpha_sum = _block_sums(alpha)
+        grey_sum = _block_sums(weighted)
         mean = (grey_sum + alpha_sum // 2) // np.maximum(alpha_sum, 1)  # rounded
         y0, x0 = (0 if dy else half), (half if dx else 0)
         quarter = out[y0 : y0 + half, x0 : x0 + half]
