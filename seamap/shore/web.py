@@ -44,7 +44,7 @@ from aiohttp import web
 from drivers.errors import SeamapError
 from drivers.zenoh_io import CoverageInfo, TileInfo, id_problem
 from seamap.shore.pyramid import Pyramid
-from seamap.shore.state import ShoreEvent
+from seamap.shore.state import ShoreEvent, TrackPoint
 
 STATIC_DIR = Path(__file__).with_name("static")
 CLIENT_QUEUE = 256
@@ -127,7 +127,10 @@ class _Vehicle:
     alive: bool | None = None
     status: dict[str, Any] | None = None
     pose: dict[str, Any] | None = None
-    track: list[tuple[float, float]] = field(default_factory=list)
+    track: list[tuple[float, float, float]] = field(default_factory=list)
+    """(east, north, time): each frame's latest pose, in the order the frames came."""
+    track_index: dict[float, int] = field(default_factory=dict)
+    """By time: the place of its point in ``track``."""
     track_epsg: int | None = None
     tiles: dict[str, dict[tuple[int, int], tuple[TileInfo, bytes]]] = field(default_factory=dict)
     """By survey, by (col, row): the latest info and PNG."""
@@ -166,14 +169,17 @@ class WebView:
             self.epsg = self.epsg if self.epsg is not None or epsg is None else epsg
             if epsg != held.track_epsg:
                 held.track, held.track_epsg = [], epsg  # a track lies in one CRS
-            held.track.append((round(p.east, 3), round(p.north, 3)))
+                held.track_index = {}
+            _place(held, p, append=True)
+            moved = [m for q in event.refined for m in _place(held, q, append=False)]
             if len(held.track) > MAX_TRACK_POINTS:
                 held.track = [*held.track[:-1:2], held.track[-1]]
+                held.track_index = {t: k for k, (_e, _n, t) in enumerate(held.track)}
             held.pose = data | {
                 "time": p.time, "lat": p.lat, "lon": p.lon, "east": p.east,
                 "north": p.north, "heading_deg": p.heading_deg, "epsg": epsg,
             }  # fmt: skip
-            data = held.pose
+            data = held.pose | {"refined": moved}
         elif event.kind == "status" and isinstance(event.status, dict):
             held.status = _finite(event.status)
             data["status"] = held.status
@@ -214,7 +220,8 @@ class WebView:
         return True
 
     def snapshot(self) -> dict[str, Any]:
-        """Every vehicle: alive, status, pose, track ([east, north] in ``track_epsg``),
+        """Every vehicle: alive, status, pose, track ([east, north, time] in ``track_epsg``:
+        each frame's latest pose, as the boat refined it),
         surveys (their grid and tiles: col, row, version, west, north) and coverage (by
         survey: ``summary`` as the boat published it, ``raster`` its ``CoverageInfo`` with
         the top-left corner in UTM metres; either None until it came)."""
@@ -257,6 +264,21 @@ class WebView:
         if coverage is None or coverage.info is None:
             return None
         return coverage.info, coverage.png
+
+
+def _place(held: _Vehicle, point: TrackPoint, append: bool) -> list[list[float]]:
+    """Put ``point`` on the track in place of the point of its time, or (``append``) at
+    its end when there is none; the [east, north, time] placed (none or one)."""
+    placed = (round(point.east, 3), round(point.north, 3), point.time)
+    at = held.track_index.get(point.time)
+    if at is not None:
+        held.track[at] = placed
+    elif append:
+        held.track_index[point.time] = len(held.track)
+        held.track.append(placed)
+    else:
+        return []
+    return [list(placed)]
 
 
 def _pose_epsg(payload: bytes) -> int | None:

@@ -24,8 +24,8 @@ let showCoverage = true;
 function vehicleOf(name) {
   let v = model.vehicles.get(name);
   if (!v) {
-    v = { name, alive: null, status: null, pose: null, track: [], trackEpsg: null,
-          surveys: new Map(), coverage: new Map() };
+    v = { name, alive: null, status: null, pose: null, track: [], trackIndex: new Map(),
+          trackEpsg: null, surveys: new Map(), coverage: new Map() };
     model.vehicles.set(name, v);
   }
   return v;
@@ -151,6 +151,7 @@ function applyState(state) {
     v.status = raw.status;
     v.pose = raw.pose;
     v.track = raw.track;
+    indexTrack(v);
     v.trackEpsg = raw.track_epsg;
     for (const [id, rawSurvey] of Object.entries(raw.surveys)) {
       const s = surveyOf(v, id, rawSurvey);
@@ -171,18 +172,37 @@ function applyTile(d) {
   changed();
 }
 
+// The track: [east, north, time] a frame, in the order the frames came, each at its
+// latest pose: the boat sends the newest pose and, with it, the frames its live map has
+// placed anew since (`refined`), which move their points (by time) to where the map is.
+function placeOnTrack(v, e, n, time, append) {
+  const at = v.trackIndex.get(time);
+  if (at !== undefined) v.track[at] = [e, n, time];
+  else if (append) {
+    v.trackIndex.set(time, v.track.length);
+    v.track.push([e, n, time]);
+  }
+}
+
+function indexTrack(v) {
+  v.trackIndex = new Map(v.track.map((p, k) => [p[2], k]));
+}
+
 function applyPose(d) {
   const v = vehicleOf(d.vehicle);
   if (model.epsg === null) model.epsg = d.epsg;
   if (d.epsg !== v.trackEpsg) {
     v.track = [];
+    v.trackIndex = new Map();
     v.trackEpsg = d.epsg;
   }
-  v.track.push([d.east, d.north]);
+  placeOnTrack(v, d.east, d.north, d.time, true);
+  for (const [e, n, time] of d.refined || []) placeOnTrack(v, e, n, time, false);
   if (v.track.length > MAX_TRACK) {
     const last = v.track[v.track.length - 1];
     v.track = v.track.filter((_, i) => i % 2 === 0);
     v.track.push(last);
+    indexTrack(v);
   }
   v.pose = d;
   changed();

@@ -428,3 +428,48 @@ def test_at_the_whole_site_the_page_asks_for_overview_tiles_only(make_shore, bro
         assert 1 <= len(tiles) <= 4, tiles  # 160 x 120 px of a 128 px tile
     finally:
         page.close()
+
+
+def test_the_track_follows_the_frames_as_the_boat_places_them_anew(make_shore, page):
+    """The boat's first estimate of each frame zigzags 20 cm about its line; as its live
+    map places the frames anew (``refined`` with a later pose), the drawn track is the
+    line, at the scale of the map (50 px a metre: the zigzag would be 10 px either side)."""
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.wait_heard()
+    open_page(page, shore)
+    east0, north0, step = 500_010.0, 4_800_010.0, 0.2
+
+    def at(k: int, off: float) -> list[float]:
+        return [1.7e9 + k / 5, 43.35, 3.0, east0 + step * k, north0 + off, 90.0]
+
+    def message(k: int, off: float, refined: list[list[float]] | None = None) -> dict[str, Any]:
+        row = at(k, off)
+        sent = {name: row[i] for i, name in enumerate(("time", "lat", "lon", "east", "north",
+                                                       "heading_deg"))}  # fmt: skip
+        return {**sent, "epsg": EPSG, **({"refined": refined} if refined else {})}
+
+    show(page, east0 + 3.0, north0, 50.0)
+    for k in range(30):
+        boat.put_pose(message(k, 0.2 * (-1) ** k))
+        page.wait_for_function(
+            f"() => seamap.model.vehicles.get('boat1')?.track.length === {k + 1}"
+        )
+    boat.put_pose(message(30, 0.0, refined=[at(k, 0.0) for k in range(30)]))
+    page.wait_for_function(
+        "() => { const t = seamap.model.vehicles.get('boat1')?.track || [];"
+        f" return t.length === 31 && t.every((p) => Math.abs(p[1] - {north0}) < 1e-6); }}"
+    )
+    page.wait_for_timeout(100)  # a frame
+
+    def tinted(east: float, north: float) -> bool:
+        p = pixel(page, *screen_of(page, east, north))
+        return p[0] - BACKGROUND[0] > 100  # the boat's orange, at the track's alpha
+
+    for k in range(2, 26):
+        east = east0 + step * k
+        assert tinted(east, north0), k  # on the line at every frame...
+        assert not tinted(east, north0 + 0.2) and not tinted(east, north0 - 0.2), k  # ...only
+    # The page's state after a resync holds the same (the server's view of the track).
+    state = shore.state()["vehicles"]["boat1"]
+    assert [round(p[1] - north0, 6) for p in state["track"]] == [0.0] * 31
