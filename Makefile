@@ -10,7 +10,7 @@ JOBS ?= 2
 # are built once); most of the suite's wall time is real-time daemon runs that wait.
 TEST_JOBS ?= 2
 
-.PHONY: demo test lint typecheck pytest chromium accuracy paper fuzz overload navloss soak clean
+.PHONY: demo test lint typecheck pytest chromium accuracy paper fuzz overload navloss soak page-bench clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -79,6 +79,11 @@ navloss: $(STAMP)
 # threads sampled through the survey-end pass (hours, and about 40 GB of disk).
 soak: $(STAMP)
 	$(BIN)/python -m tools.soak --out soak-out
+
+# The shore's live map page at a hectare's tiles (400 at 256 px x 2 cm) in headless Chromium:
+# load time of the whole site and the browser's memory (a few minutes; not in `make test`).
+page-bench: $(STAMP) chromium
+	$(BIN)/python -m tools.page_bench
 
 clean:
 	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache .import_linter_cache $(DEMO_OUT) overload-out navloss-out soak-out $(PAPER_OUT)

@@ -6,6 +6,14 @@ PNGs and puts. Live puts use congestion control DROP, so a slow shore loses stal
 instead of queueing them, and the publisher thread never waits on the network; only the
 final tiles, put once from the survey-end pass's thread, wait for the link.
 
+The pose (``seamap/{vehicle}/pose``) is the newest frame's; the frames the live map places
+anew afterwards (its window's solve, its re-solves: ``refine``) ride with the next pose put,
+as ``refined`` rows of ``[time, lat, lon, east, north, heading_deg]`` (the track's columns,
+each frame's latest), so a shore's track follows the map instead of keeping each frame's
+first, rougher estimate. Without a newer pose they go with the newest one again. A pose
+dropped on a congested link takes its rows with it: the next refinement of those frames
+comes with a later pose.
+
 Queries arrive on zenoh's threads and are handed to the same thread (no work inside a
 zenoh callback): a ``get`` on ``seamap/{vehicle}/survey/{survey}/tile/**`` (or any part of
 it) gets every current tile of the surveys it names, the live survey's from memory and
@@ -35,6 +43,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Awaitable, Callable
@@ -55,6 +64,8 @@ from mapping.streaming import PoseUpdate, TileUpdate
 log = logging.getLogger(__name__)
 
 TILES_DIR = "tiles"
+MAX_REFINED = 2000
+"""Refined frames held for the next pose at most (a re-solve moves a few hundred)."""
 TILES_INDEX = "index.json"
 
 ControlHandler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
@@ -97,7 +108,11 @@ class ZenohPublisher:
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._wake = threading.Condition()
-        self._pose: bytes | None = None
+        self._pose: dict[str, Any] | None = None
+        """The newest pose's message."""
+        self._pose_due = False
+        self._refined: dict[float, list[float]] = {}
+        """By frame time: frames placed anew since the last pose put (at most MAX_REFINED)."""
         self._status: bytes | None = None
         self._pending_tiles: dict[tuple[str, tuple[int, int]], TileUpdate] = {}
         self._finished: set[str] = set()
@@ -166,8 +181,23 @@ class ZenohPublisher:
             "frame": update.frame,
             "final": update.final,
         }
+        zenoh_io.json_bytes(message)  # refused here (NaN), not on the publisher's thread
         with self._wake:
-            self._pose = zenoh_io.json_bytes(message)
+            self._pose, self._pose_due = message, True
+            self._refined.pop(update.time, None)  # the pose itself says where it is
+            self._wake.notify()
+
+    def refine(self, update: PoseUpdate) -> None:
+        """An earlier frame placed anew: sent with the next pose (the newest kept)."""
+        row = [update.time, update.lat, update.lon, update.east, update.north, update.heading_deg]
+        if not all(math.isfinite(v) for v in row):
+            return  # a frame the map gave up placing: its point stays
+        with self._wake:
+            self._refined.pop(update.time, None)
+            self._refined[update.time] = row
+            if len(self._refined) > MAX_REFINED:
+                del self._refined[next(iter(self._refined))]  # the one left waiting longest
+            self._pose_due = self._pose is not None
             self._wake.notify()
 
     def status(self, snapshot: dict[str, Any]) -> None:
@@ -268,7 +298,7 @@ class ZenohPublisher:
                     or self._queries
                     or self._pending_tiles
                     or (self._session is not None and self._pending_coverage)
-                    or (self._session is not None and (self._pose or self._status))
+                    or (self._session is not None and (self._pose_due or self._status))
                 ):
                     self._wake.wait()
                 if self._closed:
@@ -302,7 +332,13 @@ class ZenohPublisher:
         if session is None:
             return
         with self._wake:
-            pose, self._pose = self._pose, None
+            pose = None
+            if self._pose_due and self._pose is not None:
+                message = self._pose
+                if self._refined:
+                    message = message | {"refined": sorted(self._refined.values())}
+                pose = zenoh_io.json_bytes(message)
+                self._pose_due, self._refined = False, {}
             status, self._status = self._status, None
         v = self.vehicle
         if pose is not None and self._put(session, zenoh_io.pose_key(v), pose):

@@ -56,11 +56,14 @@ class Publishing:
     # --- the live map's output (event loop) ------------------------------------------------
 
     def on_pose(self, update: PoseUpdate) -> None:
-        # Refinements of older frames update the map, not "where the boat is".
+        # Refinements of older frames move the map, not "where the boat is": they go out
+        # with the next pose, for the shores' tracks to follow the map.
         if self.latest_pose is None or update.time >= self.latest_pose.time:
             self.latest_pose = update
             if self.publisher is not None:
                 self.publisher.pose(update)
+        elif self.publisher is not None:
+            self.publisher.refine(update)
 
     def on_tile(self, survey: str, update: TileUpdate) -> None:
         self.tiles_published += 1

@@ -68,6 +68,19 @@ class TrackPoint:
     heading_deg: float
 
 
+MAX_REFINED = 5000
+"""Refined poses taken from one pose message at most."""
+
+
+@dataclass(frozen=True, slots=True)
+class TakenPose:
+    """What a pose message changed: the pose (the boat's newest) and the track's points it
+    moved (refinements of earlier frames, by their time)."""
+
+    point: TrackPoint
+    refined: tuple[TrackPoint, ...] = ()
+
+
 @dataclass(frozen=True, slots=True)
 class HeldTile:
     info: TileInfo
@@ -139,6 +152,8 @@ class HeldVehicle:
     alive: bool | None = None
     """Whether its liveliness token is up (None: never seen)."""
     track: list[TrackPoint] = field(default_factory=list)
+    track_index: dict[float, int] = field(default_factory=dict)
+    """By pose time (a frame's stamp, which its refinements keep): its place in ``track``."""
     track_changed: bool = False
     status: dict[str, Any] | None = None
     status_raw: bytes = b""
@@ -164,19 +179,37 @@ class ShoreState:
     def take_liveliness(self, vehicle: str, alive: bool) -> None:
         self.vehicle(vehicle).alive = alive
 
-    def take_pose(self, vehicle: str, payload: bytes) -> None:
-        """Append a pose (JSON with the ``TRACK_HEADER`` fields) to the vehicle's track."""
+    def take_pose(self, vehicle: str, payload: bytes) -> TakenPose:
+        """Take a pose (JSON with the ``TRACK_HEADER`` fields): appended to the vehicle's
+        track, or in place of the point of the same time (the boat sent that frame's pose
+        again). Its optional ``refined`` list (rows of ``TRACK_HEADER`` values: frames the
+        boat's live map placed anew since its last pose) moves the track's points of those
+        times; rows for times not held, or unusable, are left out."""
         try:
             raw = json.loads(payload)
-            point = TrackPoint(*(float(raw[name]) for name in TRACK_HEADER))
+            point = _track_point([raw[name] for name in TRACK_HEADER])
         except (ValueError, KeyError, TypeError) as exc:
             raise BadPayload(f"not a pose ({type(exc).__name__}: {exc})") from None
-        values = (point.time, point.lat, point.lon, point.east, point.north, point.heading_deg)
-        if not all(math.isfinite(v) for v in values) or abs(point.lat) > 90 or abs(point.lon) > 180:
-            raise BadPayload("pose not finite or out of range")
         held = self.vehicle(vehicle)
-        held.track.append(point)
+        at = held.track_index.get(point.time)
+        if at is None:
+            held.track_index[point.time] = len(held.track)
+            held.track.append(point)
+        else:
+            held.track[at] = point
+        refined = []
+        rows = raw.get("refined") if isinstance(raw, dict) else None
+        for row in rows[:MAX_REFINED] if isinstance(rows, list) else []:
+            try:
+                moved = _track_point(row)
+            except (ValueError, TypeError):
+                continue
+            at = held.track_index.get(moved.time)
+            if at is not None:
+                held.track[at] = moved
+                refined.append(moved)
         held.track_changed = True
+        return TakenPose(point, tuple(refined))
 
     def take_status(self, vehicle: str, payload: bytes) -> None:
         """Hold a status (a JSON object) in place of the vehicle's last one."""
@@ -323,6 +356,19 @@ class ShoreState:
         return held.alive if held is not None else None
 
 
+def _track_point(values: Any) -> TrackPoint:
+    """A ``TrackPoint`` from the ``TRACK_HEADER`` values; ValueError or TypeError when
+    they are not six finite numbers with lat/lon in range."""
+    if not isinstance(values, list | tuple) or len(values) != len(TRACK_HEADER):
+        raise ValueError("not the six values of a pose")
+    if any(isinstance(v, bool) or not isinstance(v, int | float) for v in values):
+        raise TypeError("pose values must be numbers")
+    point = TrackPoint(*(float(v) for v in values))
+    if not all(math.isfinite(v) for v in values) or abs(point.lat) > 90 or abs(point.lon) > 180:
+        raise ValueError("pose not finite or out of range")
+    return point
+
+
 def _png_size(payload: bytes) -> tuple[int, int]:
     """The (width, height) of a PNG, decoded whole so a truncated one is refused;
     BadPayload if it is not a PNG."""
@@ -434,6 +480,7 @@ __all__ = [
     "HeldVehicle",
     "Mosaic",
     "ShoreState",
+    "TakenPose",
     "TrackPoint",
     "atomic_write",
     "write_coverage_raster",
@@ -449,7 +496,8 @@ class ShoreEvent:
     """One item the station applied, for its ``on_event`` listener.
 
     ``kind`` is "tile" (``survey``, ``col``, ``row``, ``info`` and the PNG as received in
-    ``payload``), "pose" (``point``, and the pose JSON as received in ``payload``), "status"
+    ``payload``), "pose" (``point``, ``refined`` and the pose JSON as received in
+    ``payload``), "status"
     (``status``), "alive" (``alive``: the liveliness token appeared or went), "coverage"
     (``survey`` and its newer ``summary``) or "coverage_raster" (``survey``,
     ``coverage_info`` and the PNG as received in ``payload``)."""
@@ -462,6 +510,8 @@ class ShoreEvent:
     info: TileInfo | None = None
     payload: bytes = b""
     point: TrackPoint | None = None
+    refined: tuple[TrackPoint, ...] = ()
+    """With a pose: the track's points it moved (earlier frames placed anew)."""
     status: dict[str, Any] | None = None
     alive: bool | None = None
     summary: dict[str, Any] | None = None

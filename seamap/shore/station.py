@@ -478,10 +478,13 @@ class ShoreStation:
         if not item.put:
             return  # a delete of the pose or status means nothing here
         if what == "pose":
-            self._state.take_pose(vehicle, item.payload)
+            taken = self._state.take_pose(vehicle, item.payload)
             self.stats.poses += 1
-            point = self._state.vehicles[vehicle].track[-1]
-            self._tell(ShoreEvent("pose", vehicle, payload=item.payload, point=point))
+            self._tell(
+                ShoreEvent(
+                    "pose", vehicle, payload=item.payload, point=taken.point, refined=taken.refined
+                )
+            )
         else:
             self._state.take_status(vehicle, item.payload)
             self.stats.statuses += 1

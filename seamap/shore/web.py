@@ -11,6 +11,11 @@ server-sent events. Routes:
   is fetched from elsewhere);
 - ``/api/state``: the view as JSON (``WebView.snapshot``);
 - ``/api/tile/{vehicle}/{survey}/{col}/{row}.png?v=VERSION``: a tile's PNG as received;
+- ``/api/tile/{vehicle}/{survey}/{level}/{col}/{row}.png?v=STAMP``: a tile of the survey's
+  overview pyramid (``seamap.shore.pyramid``: level 0 the tiles as received, level L
+  2^L x 2^L of them merged into one of the same size); STAMP is the sum of (version + 1)
+  over the level-0 tiles under it, which the page computes from the tiles it knows. Built
+  on a worker thread when stale;
 - ``/api/coverage/{vehicle}/{survey}.png?v=VERSION``: a survey's coverage raster (PNG as
   received; RGBA, one pixel a cell, north-up);
 - ``/api/events``: server-sent events. The stream opens with a ``state`` event (the
@@ -29,6 +34,7 @@ import contextlib
 import json
 import math
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,7 +43,8 @@ from aiohttp import web
 
 from drivers.errors import SeamapError
 from drivers.zenoh_io import CoverageInfo, TileInfo, id_problem
-from seamap.shore.state import ShoreEvent
+from seamap.shore.pyramid import Pyramid
+from seamap.shore.state import ShoreEvent, TrackPoint
 
 STATIC_DIR = Path(__file__).with_name("static")
 CLIENT_QUEUE = 256
@@ -48,6 +55,12 @@ MAX_TRACK_POINTS = 20_000
 """Track points kept per vehicle for the page; beyond it the track is thinned by half
 (the full track is in ``track.geojson``)."""
 START_TIMEOUT_S = 10.0
+PYRAMID_WORKERS = 2
+"""Threads building overview tiles: the page's requests wait for them, the loop never."""
+WARM_EVERY_S = 5.0
+"""At most this often, the overview tiles that new tiles made stale are built ahead of
+any page's asking (up to each survey's ``Pyramid.top_level``), so a page opened on the
+whole site finds them made; one worker does it, the other stays for the pages."""
 
 
 def parse_web_address(text: str) -> tuple[str, int]:
@@ -114,12 +127,17 @@ class _Vehicle:
     alive: bool | None = None
     status: dict[str, Any] | None = None
     pose: dict[str, Any] | None = None
-    track: list[tuple[float, float]] = field(default_factory=list)
+    track: list[tuple[float, float, float]] = field(default_factory=list)
+    """(east, north, time): each frame's latest pose, in the order the frames came."""
+    track_index: dict[float, int] = field(default_factory=dict)
+    """By time: the place of its point in ``track``."""
     track_epsg: int | None = None
     tiles: dict[str, dict[tuple[int, int], tuple[TileInfo, bytes]]] = field(default_factory=dict)
     """By survey, by (col, row): the latest info and PNG."""
     coverage: dict[str, _Coverage] = field(default_factory=dict)
     """By survey: its latest summary and raster."""
+    pyramids: dict[str, Pyramid] = field(default_factory=dict)
+    """By survey: its overview levels over ``tiles``."""
 
 
 class WebView:
@@ -141,6 +159,8 @@ class WebView:
         if event.kind == "tile" and event.info is not None and not id_problem(event.survey):
             info = event.info
             held.tiles.setdefault(event.survey, {})[(event.col, event.row)] = (info, event.payload)
+            pyramid = held.pyramids.setdefault(event.survey, Pyramid(info.size_px))
+            pyramid.put(event.col, event.row, info.version, event.payload)
             self.epsg = self.epsg if self.epsg is not None else info.epsg
             data.update(_tile_json(event.survey, event.col, event.row, info))
         elif event.kind == "pose" and event.point is not None:
@@ -149,14 +169,17 @@ class WebView:
             self.epsg = self.epsg if self.epsg is not None or epsg is None else epsg
             if epsg != held.track_epsg:
                 held.track, held.track_epsg = [], epsg  # a track lies in one CRS
-            held.track.append((round(p.east, 3), round(p.north, 3)))
+                held.track_index = {}
+            _place(held, p, append=True)
+            moved = [m for q in event.refined for m in _place(held, q, append=False)]
             if len(held.track) > MAX_TRACK_POINTS:
                 held.track = [*held.track[:-1:2], held.track[-1]]
+                held.track_index = {t: k for k, (_e, _n, t) in enumerate(held.track)}
             held.pose = data | {
                 "time": p.time, "lat": p.lat, "lon": p.lon, "east": p.east,
                 "north": p.north, "heading_deg": p.heading_deg, "epsg": epsg,
             }  # fmt: skip
-            data = held.pose
+            data = held.pose | {"refined": moved}
         elif event.kind == "status" and isinstance(event.status, dict):
             held.status = _finite(event.status)
             data["status"] = held.status
@@ -197,7 +220,8 @@ class WebView:
         return True
 
     def snapshot(self) -> dict[str, Any]:
-        """Every vehicle: alive, status, pose, track ([east, north] in ``track_epsg``),
+        """Every vehicle: alive, status, pose, track ([east, north, time] in ``track_epsg``:
+        each frame's latest pose, as the boat refined it),
         surveys (their grid and tiles: col, row, version, west, north) and coverage (by
         survey: ``summary`` as the boat published it, ``raster`` its ``CoverageInfo`` with
         the top-left corner in UTM metres; either None until it came)."""
@@ -230,12 +254,31 @@ class WebView:
         held = self.vehicles.get(vehicle)
         return held.tiles.get(survey, {}).get((col, row)) if held is not None else None
 
+    def pyramid(self, vehicle: str, survey: str) -> Pyramid | None:
+        held = self.vehicles.get(vehicle)
+        return held.pyramids.get(survey) if held is not None else None
+
     def coverage_raster(self, vehicle: str, survey: str) -> tuple[CoverageInfo, bytes] | None:
         held = self.vehicles.get(vehicle)
         coverage = held.coverage.get(survey) if held is not None else None
         if coverage is None or coverage.info is None:
             return None
         return coverage.info, coverage.png
+
+
+def _place(held: _Vehicle, point: TrackPoint, append: bool) -> list[list[float]]:
+    """Put ``point`` on the track in place of the point of its time, or (``append``) at
+    its end when there is none; the [east, north, time] placed (none or one)."""
+    placed = (round(point.east, 3), round(point.north, 3), point.time)
+    at = held.track_index.get(point.time)
+    if at is not None:
+        held.track[at] = placed
+    elif append:
+        held.track_index[point.time] = len(held.track)
+        held.track.append(placed)
+    else:
+        return []
+    return [list(placed)]
 
 
 def _pose_epsg(payload: bytes) -> int | None:
@@ -332,6 +375,9 @@ class WebServer:
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
         self._error: str | None = None
+        self._builders = ThreadPoolExecutor(PYRAMID_WORKERS, thread_name_prefix="shore-pyramid")
+        self._warm_due: asyncio.TimerHandle | None = None
+        self._warming = False
 
     # --- life cycle (the caller's thread) ---------------------------------------------------
 
@@ -351,6 +397,7 @@ class WebServer:
             with contextlib.suppress(RuntimeError):  # the loop has already closed
                 loop.call_soon_threadsafe(self._shutdown)
             thread.join(timeout=START_TIMEOUT_S)
+        self._builders.shutdown(wait=False, cancel_futures=True)
 
     def on_event(self, event: ShoreEvent) -> None:
         """Hand a station event to the loop (called on the station's run thread)."""
@@ -395,6 +442,7 @@ class WebServer:
         app.router.add_static("/static/", STATIC_DIR, append_version=False)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/api/tile/{vehicle}/{survey}/{col}/{row}.png", self._tile)
+        app.router.add_get("/api/tile/{vehicle}/{survey}/{level}/{col}/{row}.png", self._level_tile)
         app.router.add_get("/api/coverage/{vehicle}/{survey}.png", self._coverage)
         app.router.add_get("/api/events", self._events)
         app.router.add_get("/files/{vehicle}/track.geojson", self._track_file)
@@ -419,12 +467,40 @@ class WebServer:
             change = self.view.apply(event)
         except Exception:  # the station hands over what it took; stay up whatever it is
             return
-        if change is None or not self._pages:
+        if change is None:
+            return
+        if change["event"] == "tile" and self._warm_due is None:
+            assert self._loop is not None
+            self._warm_due = self._loop.call_later(WARM_EVERY_S, self._warm)
+        if not self._pages:
             return
         message = _sse(change["event"], change["data"])
         for page in self._pages:
             if not page.push(message):
                 self.stats.resyncs += 1
+
+    def _warm(self) -> None:
+        """Build the stale overview tiles on a worker (one warm-up at a time; tiles that
+        come meanwhile wait for the next)."""
+        self._warm_due = None
+        if self._warming:
+            assert self._loop is not None
+            self._warm_due = self._loop.call_later(WARM_EVERY_S, self._warm)
+            return
+        pyramids = [p for held in self.view.vehicles.values() for p in held.pyramids.values()]
+
+        def warm_all() -> None:
+            try:
+                for pyramid in pyramids:
+                    pyramid.warm()
+            finally:
+                self._warming = False
+
+        self._warming = True
+        try:
+            self._builders.submit(warm_all)
+        except RuntimeError:  # closing
+            self._warming = False
 
     # --- routes -------------------------------------------------------------------------------
 
@@ -446,6 +522,25 @@ class WebServer:
             raise web.HTTPNotFound()
         info, png = held
         return _png_response(request, png, info.version, "X-Tile-Version")
+
+    async def _level_tile(self, request: web.Request) -> web.Response:
+        match = request.match_info
+        try:
+            level, col, row = int(match["level"]), int(match["col"]), int(match["row"])
+        except ValueError:
+            raise web.HTTPNotFound() from None
+        pyramid = self.view.pyramid(match["vehicle"], match["survey"])
+        if pyramid is None or pyramid.stamp(level, col, row) is None:
+            raise web.HTTPNotFound()
+        loop = asyncio.get_running_loop()
+        try:
+            held = await loop.run_in_executor(self._builders, pyramid.tile, level, col, row)
+        except RuntimeError:  # closing: the workers are gone
+            raise web.HTTPServiceUnavailable() from None
+        if held is None:
+            raise web.HTTPNotFound()
+        stamp, png = held
+        return _png_response(request, png, stamp, "X-Tile-Stamp")
 
     async def _coverage(self, request: web.Request) -> web.Response:
         match = request.match_info

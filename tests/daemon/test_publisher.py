@@ -14,10 +14,12 @@ import rasterio
 
 from daemon.config import ZenohConfig
 from daemon.publisher import TILES_DIR, ZenohPublisher, read_tiles
+from daemon.publishing import Publishing
+from daemon.surveys import OpenSurvey
 from drivers.formats.results import write_geotiff
 from drivers.zenoh_io import decode_tile, open_session
 from mapping.mosaic import TileGrid, assemble
-from mapping.streaming import TileUpdate
+from mapping.streaming import PoseUpdate, TileUpdate
 from seamap.shore import ShoreSettings, ShoreStation
 from tests.ports import free_tcp_port
 
@@ -122,3 +124,42 @@ def test_final_tiles_replace_every_live_tile_and_the_shore_holds_the_result(
         assert (a.transform, a.shape, a.crs) == (b.transform, b.shape, b.crs)
         np.testing.assert_array_equal(a.read(1), b.read(1))
     assert decode_tile((survey_dir / TILES_DIR / f"{COL0 + 2}_{ROW0}.png").read_bytes()).max() == 0
+
+
+def test_frames_placed_anew_reach_the_shores_track(
+    boat_and_shore: tuple[ZenohPublisher, ShoreStation],
+) -> None:
+    """The live map places each frame first by chaining registrations, then again as its
+    window is solved and re-solved; the shore's track is to end at the frames' latest
+    poses (the map's), not at their first estimates, which zigzag about them."""
+    publisher, station = boat_and_shore
+    _until(station, lambda s: s.alive(VEHICLE) is True, "the boat's token")
+    publishing = Publishing(ZenohConfig(), OpenSurvey())
+    publishing.publisher = publisher
+    east0, north0 = 500_010.0, 4_800_010.0
+
+    def update(frame: int, off_m: float) -> PoseUpdate:
+        # 10 cm a frame eastward, ``off_m`` north of the line.
+        return PoseUpdate(frame, 1.7e9 + frame / 5, east0 + 0.1 * frame, north0 + off_m,
+                          90.0, 43.35, 3.0, EPSG, False)  # fmt: skip
+
+    first = {k: 0.15 * (-1) ** k for k in range(20)}  # the chain's first estimates
+    for k in range(20):
+        publishing.on_pose(update(k, first[k]))
+        poses = k + 1
+        _until(station, lambda s: len(s.track(VEHICLE)) == poses, f"pose {k}")  # noqa: B023
+        if k >= 3:  # the window's solve: the frame 3 back placed anew, on the line
+            publishing.on_pose(update(k - 3, 0.0))
+    publishing.on_pose(update(19, 0.01))  # the newest, refined: in place, not a new point
+    for k in (17, 18):
+        publishing.on_pose(update(k, 0.0))  # after the last pose: sent with it again
+
+    def settled(s: ShoreStation) -> bool:
+        track = s.track(VEHICLE)
+        return len(track) == 20 and all(abs(p.north - north0) < 0.02 for p in track)
+
+    _until(station, settled, "the track on the map's line")
+    track = station.track(VEHICLE)
+    assert [round(p.east - east0, 3) for p in track] == [round(0.1 * k, 3) for k in range(20)]
+    assert track[-1].north == pytest.approx(north0 + 0.01)
+    assert publishing.latest_pose == update(19, 0.01)

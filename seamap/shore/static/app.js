@@ -8,6 +8,9 @@ const COVERAGE_OPACITY = 0.55; // the raster over the mosaic: both stay readable
 const GAP_FILL = "rgba(255, 59, 48, 0.2)";
 const GAP_STROKE = "#ff3b30";
 const GAP_DASH = [6, 4];
+const MAX_LEVEL = 10; // the server's overview pyramid: levels 1..10 over the tiles
+const MAX_IMAGES = 256; // tile images held (256 x 256 RGBA: 64 MB at most)
+const MAX_LOADING = 8; // image requests in flight
 
 const model = { epsg: null, vehicles: new Map() };
 const prefs = new Map(); // "vehicle/survey" -> {visible, opacity}: kept across resyncs
@@ -21,8 +24,8 @@ let showCoverage = true;
 function vehicleOf(name) {
   let v = model.vehicles.get(name);
   if (!v) {
-    v = { name, alive: null, status: null, pose: null, track: [], trackEpsg: null,
-          surveys: new Map(), coverage: new Map() };
+    v = { name, alive: null, status: null, pose: null, track: [], trackIndex: new Map(),
+          trackEpsg: null, surveys: new Map(), coverage: new Map() };
     model.vehicles.set(name, v);
   }
   return v;
@@ -31,7 +34,8 @@ function vehicleOf(name) {
 function surveyOf(v, id, grid) {
   let s = v.surveys.get(id);
   if (!s) {
-    s = { id, epsg: grid.epsg, res_m: grid.res_m, size_px: grid.size_px, tiles: new Map() };
+    s = { id, epsg: grid.epsg, res_m: grid.res_m, size_px: grid.size_px, tiles: new Map(),
+          stamps: Array.from({ length: MAX_LEVEL + 1 }, () => new Map()) };
     v.surveys.set(id, s);
   }
   return s;
@@ -43,32 +47,26 @@ function pref(vehicle, survey) {
   return prefs.get(key);
 }
 
-// Take a tile (col, row, version, west, north) and fetch its PNG when newer than held.
+// Take a tile's description (col, row, version, west, north): the model holds every
+// tile's, the page fetches images only for what it draws (`drawSurvey`).
 function takeTile(v, s, t) {
   const key = `${t.col}/${t.row}`;
   let tile = s.tiles.get(key);
   if (!tile) {
     tile = { col: t.col, row: t.row, west: t.west, north: t.north, version: -1,
-             img: null, imgVersion: -1, drawnVersion: -1, loading: -1 };
+             drawnVersion: -1 };
     s.tiles.set(key, tile);
   }
-  tile.version = Math.max(tile.version, t.version);
-  if (tile.imgVersion >= tile.version || tile.loading >= tile.version) return;
-  const version = tile.version;
-  tile.loading = version;
-  const img = new Image();
-  const src = `/api/tile/${encodeURIComponent(v.name)}/${encodeURIComponent(s.id)}/` +
-    `${t.col}/${t.row}.png?v=${version}`;
-  img.src = src;
-  img.decode().then(() => {
-    if (version > tile.imgVersion) {
-      tile.img = img;
-      tile.imgVersion = version;
-      requestFrame();
-    }
-  }).catch(() => {}).finally(() => {
-    if (tile.loading === version) tile.loading = -1;
-  });
+  if (t.version <= tile.version) return;
+  // Each overview tile's stamp is the sum of (version + 1) of the tiles under it: the
+  // server's, so the URL names the image this state asks for.
+  const step = t.version - tile.version;
+  tile.version = t.version;
+  for (let level = 1; level <= MAX_LEVEL; level++) {
+    const k = `${Math.floor(t.col / 2 ** level)}/${Math.floor(t.row / 2 ** level)}`;
+    const stamps = s.stamps[level];
+    stamps.set(k, (stamps.get(k) || 0) + step);
+  }
 }
 
 function coverageOf(v, id) {
@@ -153,6 +151,7 @@ function applyState(state) {
     v.status = raw.status;
     v.pose = raw.pose;
     v.track = raw.track;
+    indexTrack(v);
     v.trackEpsg = raw.track_epsg;
     for (const [id, rawSurvey] of Object.entries(raw.surveys)) {
       const s = surveyOf(v, id, rawSurvey);
@@ -173,18 +172,37 @@ function applyTile(d) {
   changed();
 }
 
+// The track: [east, north, time] a frame, in the order the frames came, each at its
+// latest pose: the boat sends the newest pose and, with it, the frames its live map has
+// placed anew since (`refined`), which move their points (by time) to where the map is.
+function placeOnTrack(v, e, n, time, append) {
+  const at = v.trackIndex.get(time);
+  if (at !== undefined) v.track[at] = [e, n, time];
+  else if (append) {
+    v.trackIndex.set(time, v.track.length);
+    v.track.push([e, n, time]);
+  }
+}
+
+function indexTrack(v) {
+  v.trackIndex = new Map(v.track.map((p, k) => [p[2], k]));
+}
+
 function applyPose(d) {
   const v = vehicleOf(d.vehicle);
   if (model.epsg === null) model.epsg = d.epsg;
   if (d.epsg !== v.trackEpsg) {
     v.track = [];
+    v.trackIndex = new Map();
     v.trackEpsg = d.epsg;
   }
-  v.track.push([d.east, d.north]);
+  placeOnTrack(v, d.east, d.north, d.time, true);
+  for (const [e, n, time] of d.refined || []) placeOnTrack(v, e, n, time, false);
   if (v.track.length > MAX_TRACK) {
     const last = v.track[v.track.length - 1];
     v.track = v.track.filter((_, i) => i % 2 === 0);
     v.track.push(last);
+    indexTrack(v);
   }
   v.pose = d;
   changed();
@@ -205,6 +223,9 @@ function colourOf(name) {
 
 function draw() {
   frameWanted = false;
+  frame += 1;
+  viewStatus.wanted = 0;
+  viewStatus.drawn = 0;
   view.begin();
   for (const v of model.vehicles.values()) {
     const live = liveSurvey(v);
@@ -212,14 +233,10 @@ function draw() {
     for (const s of order) {
       const p = pref(v.name, s.id);
       if (!p.visible || s.epsg !== model.epsg) continue;
-      const side = s.res_m * s.size_px;
-      for (const tile of s.tiles.values()) {
-        if (tile.img && view.drawTile(tile.img, tile.west, tile.north, side, p.opacity)) {
-          tile.drawnVersion = tile.imgVersion;
-        }
-      }
+      drawSurvey(v, s, p.opacity);
     }
   }
+  evictImages();
   if (showCoverage) drawCoverage();
   for (const v of model.vehicles.values()) {
     if (v.trackEpsg === model.epsg) view.drawTrack(v.track, colourOf(v.name));
@@ -235,6 +252,151 @@ function draw() {
                   v.alive === false);
   }
   drawScale();
+}
+
+// --- the tiles drawn: at the level whose pixel matches the screen's, only those in view ---
+
+const images = new Map(); // "vehicle/survey/level/col/row" -> {bitmap, version, loading, used}
+let loadingCount = 0;
+let frame = 0;
+const viewStatus = { wanted: 0, drawn: 0, level: 0 }; // of the last frame, for tests
+
+// The coarsest level whose pixel is no larger than a screen pixel (so nothing is drawn
+// coarser than the screen shows it).
+function levelFor(s) {
+  const screenPixelM = 1 / (view.scale * view.dpr);
+  const level = Math.floor(Math.log2(screenPixelM / s.res_m) + 1e-9);
+  return Math.min(Math.max(level, 0), MAX_LEVEL);
+}
+
+// The tiles of a level (key -> version or stamp) that lie in view.
+function tilesInView(s, level) {
+  const side = s.res_m * s.size_px * 2 ** level;
+  const nw = view.screenToUtm(0, 0), se = view.screenToUtm(view.width, view.height);
+  const c0 = Math.floor(nw.e / side), c1 = Math.floor(se.e / side);
+  const r0 = Math.floor(se.n / side), r1 = Math.floor(nw.n / side);
+  const held = level === 0 ? null : s.stamps[level];
+  const want = (k) => (level === 0 ? s.tiles.get(k)?.version : held.get(k));
+  const size = level === 0 ? s.tiles.size : held.size;
+  const out = [];
+  if ((c1 - c0 + 1) * (r1 - r0 + 1) <= size) {
+    for (let c = c0; c <= c1; c++) {
+      for (let r = r0; r <= r1; r++) {
+        const version = want(`${c}/${r}`);
+        if (version !== undefined) out.push({ col: c, row: r, version });
+      }
+    }
+  } else {
+    for (const k of (level === 0 ? s.tiles.keys() : held.keys())) {
+      const [c, r] = k.split("/").map(Number);
+      if (c >= c0 && c <= c1 && r >= r0 && r <= r1) out.push({ col: c, row: r, version: want(k) });
+    }
+  }
+  return { side, tiles: out };
+}
+
+function imageUrl(v, s, level, col, row, version) {
+  const base = `/api/tile/${encodeURIComponent(v.name)}/${encodeURIComponent(s.id)}`;
+  return level === 0 ? `${base}/${col}/${row}.png?v=${version}`
+    : `${base}/${level}/${col}/${row}.png?v=${version}`;
+}
+
+// The image held for a tile (any version), and its fetch when older than `version`.
+function imageOf(v, s, level, col, row, version) {
+  const key = `${v.name}/${s.id}/${level}/${col}/${row}`;
+  let entry = images.get(key);
+  if (!entry) {
+    entry = { bitmap: null, version: -1, loading: -1, used: frame, drawn: -1 };
+    images.set(key, entry);
+  }
+  entry.used = frame;
+  if (entry.version < version && entry.loading < version && loadingCount < MAX_LOADING) {
+    entry.loading = version;
+    loadingCount += 1;
+    fetch(imageUrl(v, s, level, col, row, version))
+      .then((r) => (r.ok ? r.blob() : Promise.reject(new Error(r.status))))
+      .then((blob) => createImageBitmap(blob))
+      .then((bitmap) => {
+        if (version > entry.version && images.get(key) === entry) {
+          if (entry.bitmap) entry.bitmap.close();
+          entry.bitmap = bitmap;
+          entry.version = version;
+        } else {
+          bitmap.close();
+        }
+      })
+      .catch(() => {})
+      .finally(() => {
+        loadingCount -= 1;
+        if (entry.loading === version) entry.loading = -1;
+        requestFrame();
+      });
+  }
+  return entry;
+}
+
+// A survey's tiles in view at the level that fits the zoom; where one's image is not in
+// yet, the nearest coarser one held stands in for it (drawn first, under the others).
+function drawSurvey(v, s, opacity) {
+  const level = levelFor(s);
+  const { side, tiles } = tilesInView(s, level);
+  viewStatus.level = level;
+  const standIns = new Map();
+  const ready = [];
+  for (const t of tiles) {
+    const entry = imageOf(v, s, level, t.col, t.row, t.version);
+    viewStatus.wanted += 1;
+    if (entry.bitmap) ready.push([t, entry]);
+    if (entry.bitmap && entry.version >= t.version) viewStatus.drawn += 1;
+    if (entry.bitmap) continue;
+    for (let up = level + 1; up <= MAX_LEVEL; up++) {
+      const key = `${v.name}/${s.id}/${up}/${Math.floor(t.col / 2 ** (up - level))}/` +
+        `${Math.floor(t.row / 2 ** (up - level))}`;
+      const held = images.get(key);
+      if (held && held.bitmap) {
+        held.used = frame;
+        standIns.set(key, [up, held, key]);
+        break;
+      }
+    }
+  }
+  for (const [up, held, key] of [...standIns.values()].sort((a, b) => b[0] - a[0])) {
+    const [col, row] = key.split("/").slice(-2).map(Number);
+    const upSide = s.res_m * s.size_px * 2 ** up;
+    view.drawTile(held.bitmap, col * upSide, (row + 1) * upSide, upSide, opacity);
+  }
+  for (const [t, entry] of ready) {
+    view.drawTile(entry.bitmap, t.col * side, (t.row + 1) * side, side, opacity);
+    if (entry.drawn !== entry.version) markDrawn(s, level, t, entry);
+  }
+}
+
+// The tiles (level 0) an image drawn shows at their versions: for `drawnVersion`.
+function markDrawn(s, level, t, entry) {
+  entry.drawn = entry.version;
+  if (entry.version !== t.version) return; // newer tiles came since: its newer image will
+  if (level === 0) {
+    const tile = s.tiles.get(`${t.col}/${t.row}`);
+    if (tile) tile.drawnVersion = Math.max(tile.drawnVersion, tile.version);
+    return;
+  }
+  const n = 2 ** level;
+  for (const tile of s.tiles.values()) {
+    if (Math.floor(tile.col / n) === t.col && Math.floor(tile.row / n) === t.row) {
+      tile.drawnVersion = Math.max(tile.drawnVersion, tile.version);
+    }
+  }
+}
+
+// Beyond MAX_IMAGES, the images least recently drawn go (their memory freed now).
+function evictImages() {
+  if (images.size <= MAX_IMAGES) return;
+  const old = [...images.entries()].filter(([, e]) => e.used < frame && e.loading < 0)
+    .sort((a, b) => a[1].used - b[1].used);
+  for (const [key, entry] of old.slice(0, images.size - MAX_IMAGES)) {
+    if (entry.bitmap) entry.bitmap.close();
+    images.delete(key);
+  }
 }
 
 // Each shown survey's coverage raster over the mosaics, then every gap over the rasters.
@@ -534,6 +696,11 @@ window.seamap = {
     const s = model.vehicles.get(vehicle)?.surveys.get(survey);
     const t = s?.tiles.get(`${col}/${row}`);
     return t ? t.drawnVersion : -1;
+  },
+  // The last frame's tiles in view (wanted), those drawn at their newest version, and
+  // the pyramid level drawn; the tile images held.
+  viewStatus() {
+    return { ...viewStatus, images: images.size, loading: loadingCount };
   },
   // The versions of a survey's coverage raster and gaps last drawn (-1: never).
   coverageDrawn(vehicle, survey) {

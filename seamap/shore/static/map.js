@@ -107,7 +107,7 @@ class MapView {
     const ctx = this.ctx;
     // Zoomed in (an image pixel covers a screen pixel or more): nearest neighbour, so
     // the values drawn are the image's.
-    ctx.imageSmoothingEnabled = w * this.dpr < img.naturalWidth;
+    ctx.imageSmoothingEnabled = w * this.dpr < (img.naturalWidth || img.width);
     ctx.globalAlpha = opacity;
     ctx.drawImage(img, p.x, p.y, w, h);
     ctx.globalAlpha = 1;

@@ -359,3 +359,117 @@ def test_coverage_raster_gaps_and_covered_fraction_are_shown(make_shore, page):
     assert near(at(west + 0.2, south + 0.2), BACKGROUND)
     wait_until(lambda: "final" in row.inner_text(), "the final coverage in the panel")
     assert row.inner_text() == "seen 813 m² · final"
+
+
+def test_at_the_whole_site_the_page_asks_for_overview_tiles_only(make_shore, browser):
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.wait_heard()
+    site = 8  # tiles a side: 25.6 m
+    for dc in range(site):
+        for dr in range(site):
+            boat.put_tile(COL0 + dc, ROW0 + dr, tile_values(dc * site + dr), version=1)
+    wait_until(lambda: len(shore.state()["vehicles"]["boat1"]["surveys"]["s1"]["tiles"]) == 64,
+               "the site's tiles at the shore")  # fmt: skip
+    # A small screen: the whole site fits at about 6 px per metre, 3 mosaic pixels a screen
+    # pixel, so level 1 (10 cm pixels) is the finest the screen shows.
+    page = browser.new_page()
+    page.set_viewport_size({"width": 320, "height": 240})
+    tiles: list[list[int]] = []
+
+    def on_request(request: Any) -> None:
+        # /api/tile/VEHICLE/SURVEY/[LEVEL/]COL/ROW.png: as [level, col, row]
+        parts = request.url.split("?")[0].removesuffix(".png").split("/api/tile/")
+        if len(parts) == 2:
+            numbers = [int(x) for x in parts[1].split("/")[2:]]
+            tiles.append(numbers if len(numbers) == 3 else [0, *numbers])
+
+    page.on("request", on_request)
+    try:
+        open_page(page, shore)
+        page.wait_for_function(
+            "() => { const s = seamap.viewStatus(); return s.wanted > 0 && s.drawn === s.wanted; }",
+            polling="raf",
+        )
+        status = page.evaluate("() => seamap.viewStatus()")
+        assert status["level"] == 1
+        levels = [level for level, _, _ in tiles]
+        # The 4 x 4 level-1 tiles over the site (COL0 and ROW0 are even), no level-0 tile.
+        assert levels and set(levels) == {1}, tiles
+        assert sorted({(c, r) for _, c, r in tiles}) == sorted(
+            ((COL0 >> 1) + dc, (ROW0 >> 1) + dr) for dc in range(4) for dr in range(4)
+        )
+        # The site is drawn: its middle holds the mosaic's grey, not the background.
+        x, y = screen_of(page, (COL0 + 4) * TILE_M, (ROW0 + 4) * TILE_M)
+        assert pixel(page, x + 0.5, y + 0.5)[:3] != list(BACKGROUND)
+        # Every tile counts as drawn (within the overview tiles that hold it).
+        for dc, dr in ((0, 0), (7, 7), (3, 5)):
+            drawn = f"() => seamap.drawnVersion('boat1', 's1', {COL0 + dc}, {ROW0 + dr})"
+            assert page.evaluate(drawn) == 1
+
+        # A republished tile reaches the overview: its level-1 tile asked for again.
+        tiles.clear()
+        boat.put_tile(COL0 + 3, ROW0 + 5, tile_values(99), version=2)
+        page.wait_for_function(
+            f"() => seamap.drawnVersion('boat1', 's1', {COL0 + 3}, {ROW0 + 5}) >= 2",
+            polling="raf",
+        )
+        assert tiles == [[1, (COL0 + 3) >> 1, (ROW0 + 5) >> 1]]
+
+        # Zoomed in on one tile: level 0, only the tiles in view.
+        tiles.clear()
+        show(page, (COL0 + 0.5) * TILE_M, (ROW0 + 0.5) * TILE_M, 2 / RES_M)
+        page.wait_for_function(
+            "() => { const s = seamap.viewStatus();"
+            " return s.level === 0 && s.drawn === s.wanted && s.wanted > 0; }",
+            polling="raf",
+        )
+        assert tiles and all(level == 0 for level, _, _ in tiles)
+        assert 1 <= len(tiles) <= 4, tiles  # 160 x 120 px of a 128 px tile
+    finally:
+        page.close()
+
+
+def test_the_track_follows_the_frames_as_the_boat_places_them_anew(make_shore, page):
+    """The boat's first estimate of each frame zigzags 20 cm about its line; as its live
+    map places the frames anew (``refined`` with a later pose), the drawn track is the
+    line, at the scale of the map (50 px a metre: the zigzag would be 10 px either side)."""
+    shore: Shore = make_shore()
+    boat = shore.boat("boat1")
+    boat.wait_heard()
+    open_page(page, shore)
+    east0, north0, step = 500_010.0, 4_800_010.0, 0.2
+
+    def at(k: int, off: float) -> list[float]:
+        return [1.7e9 + k / 5, 43.35, 3.0, east0 + step * k, north0 + off, 90.0]
+
+    def message(k: int, off: float, refined: list[list[float]] | None = None) -> dict[str, Any]:
+        row = at(k, off)
+        sent = {name: row[i] for i, name in enumerate(("time", "lat", "lon", "east", "north",
+                                                       "heading_deg"))}  # fmt: skip
+        return {**sent, "epsg": EPSG, **({"refined": refined} if refined else {})}
+
+    show(page, east0 + 3.0, north0, 50.0)
+    for k in range(30):
+        boat.put_pose(message(k, 0.2 * (-1) ** k))
+        page.wait_for_function(
+            f"() => seamap.model.vehicles.get('boat1')?.track.length === {k + 1}"
+        )
+    boat.put_pose(message(30, 0.0, refined=[at(k, 0.0) for k in range(30)]))
+    page.wait_for_function(
+        "() => { const t = seamap.model.vehicles.get('boat1')?.track || [];"
+        f" return t.length === 31 && t.every((p) => Math.abs(p[1] - {north0}) < 1e-6); }}"
+    )
+    page.wait_for_timeout(100)  # a frame
+
+    def tinted(east: float, north: float) -> bool:
+        p = pixel(page, *screen_of(page, east, north))
+        return p[0] - BACKGROUND[0] > 100  # the boat's orange, at the track's alpha
+
+    for k in range(2, 26):
+        east = east0 + step * k
+        assert tinted(east, north0), k  # on the line at every frame...
+        assert not tinted(east, north0 + 0.2) and not tinted(east, north0 - 0.2), k  # ...only
+    # The page's state after a resync holds the same (the server's view of the track).
+    state = shore.state()["vehicles"]["boat1"]
+    assert [round(p[1] - north0, 6) for p in state["track"]] == [0.0] * 31

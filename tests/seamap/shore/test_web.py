@@ -115,7 +115,7 @@ def test_the_page_api_shows_every_boat_its_tiles_track_and_status(make_shore):
     b1 = state["vehicles"]["boat1"]
     assert b1["alive"] is True and state["vehicles"]["boat2"]["alive"] is True
     assert b1["status"] == STATUS
-    assert b1["track"] == [[p["east"], p["north"]] for p in map(pose, range(3))]
+    assert b1["track"] == [[p["east"], p["north"], p["time"]] for p in map(pose, range(3))]
     assert b1["pose"]["east"] == pose(2)["east"] and b1["pose"]["heading_deg"] == 90.0
     s1 = b1["surveys"]["s1"]
     assert (s1["epsg"], s1["res_m"], s1["size_px"]) == (32631, 0.05, 64)
