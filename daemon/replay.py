@@ -300,11 +300,15 @@ def _stream(
     return final, (live_map, engine.stats)
 
 
-Scorer = Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]
+Scorer = Callable[
+    [SurveyResult, npt.NDArray[np.uint8], float, float, float, SonarFan], dict[str, Any]
+]
 """What scores a result against a reference (``report.json``'s ``accuracy``): called with
-the result, its north-up mosaic, the mosaic's west and north edges (UTM m) and its pixel
-(m). ``seamap replay --truth`` takes one from the ``seamap.scorers`` entry point ``truth``
-(the simulator's truth: ``tools.evaluation.truth.truth_scorer``); the product holds none."""
+the result, its north-up mosaic, the mosaic's west and north edges (UTM m), its pixel (m)
+and the sonar's fan as the mapper keeps it (range, fan, vertical beam: what a reference
+without the sonar's own geometry scores the lanes with). ``seamap replay --truth`` takes
+one from the ``seamap.scorers`` entry point ``truth`` (a simulator's truth or a reference
+trajectory: ``tools.evaluation.truth.truth_scorer``); the product holds none."""
 
 
 def replay(
@@ -457,13 +461,13 @@ def replay(
             },
         }
     if scorer is not None:
-        report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m)
+        report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m, fan)
         if live is not None and live[0] is result:
             report["accuracy_live"] = report["accuracy"]  # no survey-end pass: the live map
         elif live is not None:
             live_image, live_west, live_north = render(live[0])
             report["accuracy_live"] = scorer(
-                live[0], live_image, live_west, live_north, params.mosaic_res_m
+                live[0], live_image, live_west, live_north, params.mosaic_res_m, fan
             )
     write_report(out / "report.json", report)
     spill_dir.cleanup()
