@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from daemon.replay import replay
@@ -54,7 +55,8 @@ def around_each_ping(pings: list[dict[str, Any]], offset_s: float) -> list[dict[
 
 
 @pytest.fixture(scope="module")
-def scored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+def survey(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Path]]:
+    """The simulated survey's folder, and its truth as each reference file."""
     root = tmp_path_factory.mktemp("reference")
     sim = root / "sim"
     simulate("quadrats", 2, sim, lane_length_m=8.0, n_lanes=2, ping_rate_hz=0.5, n_beams=64,
@@ -70,6 +72,13 @@ def scored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]
     ):
         references[name] = root / f"{name}.csv"
         write_reference(references[name], rows, columns)
+    return sim, references
+
+
+@pytest.fixture(scope="module")
+def scored(survey: tuple[Path, dict[str, Path]]) -> dict[str, dict[str, Any]]:
+    """report.json's ``accuracy`` against each reference, from one gps-only replay."""
+    sim, references = survey
     scorers = {name: truth_scorer(path) for name, path in references.items()}
     # Nearest row only (no interpolation): the rows around the pings are 0.3 s off.
     scorers["csv_around_nearest"] = truth_scorer(references["csv_around"], 0.35, 0.0)
@@ -79,7 +88,7 @@ def scored(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]
 
     report = replay(
         [sim / "sonar.oculus"], [sim / "nav.tlog"], sim / "site.toml", "gps-only",
-        root / "out", scorer=score, workers=0,
+        sim.parent / "out", scorer=score, workers=0,
     )  # fmt: skip
     accuracy: dict[str, dict[str, Any]] = report["accuracy"]
     return accuracy
@@ -146,3 +155,22 @@ def test_the_contract_columns_alone_score_the_trajectory_alike(
     assert contract["lanes.rms_m"] == pytest.approx(want["lanes.rms_m"], rel=0.1)
     assert "level" in scored["csv_contract"]["reference"]["assumed"]
     print({k: (contract[k], want[k]) for k in want if k.startswith("lanes.")})
+
+
+def test_seamap_replay_takes_the_csv_and_says_what_it_cannot_score(
+    survey: tuple[Path, dict[str, Path]], scored: dict[str, dict[str, Any]], tmp_path: Path
+) -> None:
+    sim, reference = survey[0], survey[1]["csv_contract"]
+    done = subprocess.run(
+        [sys.executable, "-m", "seamap", "replay", "--sonar", str(sim / "sonar.oculus"),
+         "--nav", str(sim / "nav.tlog"), "--config", str(sim / "site.toml"),
+         "--mode", "gps-only", "--workers", "0", "--truth", str(reference),
+         "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    ate = report["accuracy"]["trajectory"]["rmse"]
+    assert ate == pytest.approx(scored["csv_contract"]["trajectory"]["rmse"], abs=1e-9)
+    assert f"accuracy: ATE {ate:.3f} m" in done.stdout
+    assert "not available with a reference trajectory" in done.stdout
