@@ -174,3 +174,28 @@ def test_seamap_replay_takes_the_csv_and_says_what_it_cannot_score(
     assert ate == pytest.approx(scored["csv_contract"]["trajectory"]["rmse"], abs=1e-9)
     assert f"accuracy: ATE {ate:.3f} m" in done.stdout
     assert "not available with a reference trajectory" in done.stdout
+
+
+def test_seamap_evaluate_scores_every_method_against_the_csv(
+    survey: tuple[Path, dict[str, Path]], scored: dict[str, dict[str, Any]], tmp_path: Path
+) -> None:
+    sim, reference = survey[0], survey[1]["csv_contract"]
+    out = tmp_path / "report"
+    done = subprocess.run(
+        [sys.executable, "-m", "seamap", "evaluate", str(sim), "--truth", str(reference),
+         "--every", "30", "--out", str(out)],
+        capture_output=True, text=True, timeout=1200,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    table_ii = json.loads((out / "tables.json").read_text())["table_ii"]
+    assert table_ii["reference"]["frames_matched"] == table_ii["reference"]["frames"]
+    rows = table_ii["truth"]
+    assert {"gps-only", "single-stage", "fmt-pairwise", "orb"} <= set(rows)
+    assert all(math.isfinite(row["ate_m"]) for row in rows.values())
+    # Its gps-only replay is the one scored above against truth.json.
+    want = scored["json"]["trajectory"]
+    assert rows["gps-only"]["ate_m"] == pytest.approx(want["rmse"], abs=2e-4)
+    assert rows["gps-only"]["rpe_10s_m"] == pytest.approx(want["rpe_10s_m"], abs=2e-4)
+    report = (out / "report.md").read_text()
+    assert "Against the reference trajectory" in report
+    assert "not available with a reference trajectory" in report

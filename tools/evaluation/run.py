@@ -258,7 +258,9 @@ def _table_ii(
             mount, SonarFan.of_ping(next(iter(pings())), mount, params.preprocess),
             inputs.config.sonar.altitude_m,
         )  # fmt: skip
-        section["truth"] = _with_truth(inputs, times, pairwise, trajectories, runs, epsg, sonar)
+        section["truth"], section["reference"] = _with_truth(
+            inputs, times, pairwise, trajectories, runs, epsg, sonar
+        )
     return section
 
 
@@ -270,11 +272,12 @@ def _with_truth(
     runs: dict[str, modes.ModeRun],
     epsg: int,
     sonar: SonarSetup,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """Each method's ATE, RPE over 10 s and lane disagreement against the truth (or the
     reference trajectory: its heads from ``sonar``, the config's mount, the pings' fan and
     the configured altitude): the modes' from their reports, the baselines' from their
-    chained steps."""
+    chained steps; and how the frames met the reference (``Matched.summary``, with what it
+    cannot score)."""
     from tools.evaluation.truth import load_reference, trajectory_section
     from tools.lanes import lane_disagreement
 
@@ -296,7 +299,10 @@ def _with_truth(
         est = registration.chained(found.steps, reference)
         lanes = lane_disagreement(stamps, true, est, heads, fan, centres)
         out[name] = _truth_row(trajectory_section(stamps, est, true), lanes)
-    return out
+    summary = dict(matched.summary)
+    if source.unavailable:
+        summary["unavailable"] = source.unavailable
+    return out, summary
 
 
 def _truth_row(trajectory: dict[str, Any], lanes: dict[str, Any]) -> dict[str, Any]:
