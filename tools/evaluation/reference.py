@@ -109,6 +109,8 @@ def looks_like_csv(path: Path) -> bool:
             first = f.readline(4096).decode("utf-8-sig", errors="replace")
     except OSError:
         return False
+    if first.lstrip().startswith("{"):
+        return False  # JSON, even minified onto one line
     names = {name.strip().lower() for name in first.split(",")}
     return "," in first and bool(names & {*REQUIRED, *OPTIONAL})
 
