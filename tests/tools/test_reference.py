@@ -12,13 +12,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.errors import SeamapError
+from drivers.formats.results import write_trajectory
 from mapping.coverage import SonarFan
 from mapping.frames import SonarMount
 from mapping.geo import LocalFrame
 from tools.evaluation.reference import SonarSetup, match_times, read_reference_csv
 from tools.evaluation.truth import SimTruth, load_reference
+from tools.se2 import wrap
 
 EPSG = 32618  # UTM 18N
 FRAME = LocalFrame(EPSG, 0.0, 0.0)
@@ -171,3 +175,46 @@ def test_a_malformed_csv_through_the_cli_is_one_line_and_status_2(
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
     assert f"{bad}: row 3, column heading_deg: 'east' is not a number" in lines[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    steps=st.lists(st.floats(0.01, 2.0), min_size=2, max_size=40),
+    where=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=20),
+    velocity=st.tuples(st.floats(-2.0, 2.0), st.floats(-2.0, 2.0)),
+    start_heading=st.floats(0.0, 2 * math.pi, exclude_max=True),
+    turn_rate=st.floats(-0.5, 0.5),
+)
+def test_a_steady_motion_is_interpolated_exactly_between_any_rows(
+    steps: list[float], where: list[float], velocity: tuple[float, float],
+    start_heading: float, turn_rate: float,
+) -> None:  # fmt: skip
+    rows = 1000.0 + np.concatenate([[0.0], np.cumsum(steps)])
+    times = rows[0] + np.asarray(where) * (rows[-1] - rows[0])
+    left, right, weight, how = match_times(rows, times, 0.0, math.inf)
+    assert (how == 2).all() or rows[-1] in times
+    assert ((weight >= 0) & (weight <= 1)).all()
+    assert (rows[left] <= times + 1e-9).all() and (rows[right] >= times - 1e-9).all()
+
+    def heading(t: np.ndarray) -> np.ndarray:
+        return np.mod(start_heading + turn_rate * (t - 1000.0), 2 * math.pi)
+
+    h_rows = heading(rows)
+    got = np.mod(h_rows[left] + weight * wrap(h_rows[right] - h_rows[left]), 2 * math.pi)
+    error = np.angle(np.exp(1j * (got - heading(times))))
+    # Linear in time: exact wherever no two rows are a half-turn apart in heading.
+    assert np.abs(error).max() < 1e-9
+    east = velocity[0] * (rows - 1000.0)
+    got_east = east[left] + weight * (east[right] - east[left])
+    np.testing.assert_allclose(got_east, velocity[0] * (times - 1000.0), atol=1e-9)
+
+
+def test_a_trajectory_csv_of_another_run_is_a_reference(tmp_path: Path) -> None:
+    t = 1.7e9 + np.arange(0.0, 30.0, 0.2)
+    poses = circle(t - t[0])
+    local = LocalFrame(EPSG, 500_000.0, 4_500_000.0)
+    write_trajectory(tmp_path / "trajectory.csv", local, t, poses - [500_000.0, 4_500_000.0, 0.0])
+    matched = load_reference(tmp_path / "trajectory.csv").at(t, EPSG, SONAR)
+    np.testing.assert_allclose(matched.poses[:, :2], poses[:, :2], atol=1e-4)
+    error = np.angle(np.exp(1j * (matched.poses[:, 2] - poses[:, 2])))
+    assert np.abs(error).max() < math.radians(2e-4)
