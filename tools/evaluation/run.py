@@ -37,6 +37,7 @@ from tools.evaluation.metrics import Quadrat
 from tools.evaluation.preprocessing import CONFIGURATIONS, preprocessing_table
 from tools.evaluation.reference import SonarSetup
 from tools.evaluation.report import write_report
+from tools.evaluation.truth import replay_altitude
 
 Say = Callable[[str], None]
 
@@ -254,10 +255,14 @@ def _table_ii(
         },
     }
     if inputs.truth is not None:
+        # The altitude single-stage's replay used, so that the baselines' lanes are
+        # scored with the heads the modes' were.
+        altitude = replay_altitude(
+            runs["single-stage"].report.get("bottom", {}), inputs.config.sonar.altitude_m
+        )
         sonar = SonarSetup(
-            mount, SonarFan.of_ping(next(iter(pings())), mount, params.preprocess),
-            inputs.config.sonar.altitude_m,
-        )  # fmt: skip
+            mount, SonarFan.of_ping(next(iter(pings())), mount, params.preprocess), altitude
+        )
         section["truth"], section["reference"] = _with_truth(
             inputs, times, pairwise, trajectories, runs, epsg, sonar
         )
@@ -274,10 +279,9 @@ def _with_truth(
     sonar: SonarSetup,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Each method's ATE, RPE over 10 s and lane disagreement against the truth (or the
-    reference trajectory: its heads from ``sonar``, the config's mount, the pings' fan and
-    the configured altitude): the modes' from their reports, the baselines' from their
-    chained steps; and how the frames met the reference (``Matched.summary``, with what it
-    cannot score)."""
+    reference trajectory: its heads and fan from ``sonar``): the modes' from their
+    reports, the baselines' from their chained steps; and how the frames met the
+    reference (``Matched.summary``, with what it cannot score)."""
     from tools.evaluation.truth import load_reference, trajectory_section
     from tools.lanes import lane_disagreement
 

@@ -380,17 +380,18 @@ def truth_scorer(
         result: SurveyResult, mosaic: npt.NDArray[np.uint8], west: float, north: float,
         res_m: float, fan: SonarFan,
     ) -> dict[str, Any]:  # fmt: skip
-        sonar = SonarSetup(result.mount, fan, replay_altitude(result))
+        altitude = replay_altitude(result.bottom, result.mount.altitude_m)
+        sonar = SonarSetup(result.mount, fan, altitude)
         return evaluate(reference, result, mosaic, west, north, res_m, sonar)
 
     return score
 
 
-def replay_altitude(result: SurveyResult) -> float:
-    """The sonar's altitude above the seabed the replay used (m): the median of its
-    seabed planes' (echosounder or sonar soundings, ``SurveyResult.bottom``), else the
-    configured one (the mount's)."""
-    found = result.bottom.get("altitude_m")
+def replay_altitude(bottom: dict[str, Any], configured_m: float) -> float:
+    """The sonar's altitude above the seabed a replay used (m): the median of its seabed
+    planes' (from echosounder or sonar soundings: ``SurveyResult.bottom``, report.json's
+    ``bottom``), else the configured one."""
+    found = bottom.get("altitude_m")
     if isinstance(found, dict) and found.get("median") is not None:
         return float(found["median"])
-    return float(result.mount.altitude_m)
+    return float(configured_m)
