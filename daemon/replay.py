@@ -190,11 +190,17 @@ def read_navigation(nav_logs: LogPaths, config: SiteConfig) -> tuple[NavSamples,
     return NavSamples(nav.imu, nav.gnss, nav.heading, nav.attitude, ranges=nav.ranges), info
 
 
-def check_captures(paths: Sequence[Path], clock: CaptureClock | None) -> None:
+def check_captures(
+    paths: Sequence[Path],
+    clock: CaptureClock | None,
+    unstamped: str = "give --sonar-start (UNIX s of its first ping, the navigation log's "
+    "clock) to map it",
+) -> None:
     """SeamapError (one line) unless every sonar file can be stamped: a raw network
     capture has no receipt times, so it needs ``clock`` (one capture, alone; its pings
     v2, whose own clock spaces them, or a rate); ``clock`` with a log that has times is
-    refused too (it would be ignored)."""
+    refused too (it would be ignored). ``unstamped``: what to do about a capture without
+    a clock, for the message."""
     from drivers.oculus.logfile import RAW_CAPTURE, LogReadReport, iter_log_items
     from drivers.oculus.ping import read_ping_info
 
@@ -210,10 +216,7 @@ def check_captures(paths: Sequence[Path], clock: CaptureClock | None) -> None:
                 )
             continue
         if clock is None:
-            raise SeamapError(
-                f"{path}: a raw Oculus capture has no receipt times: give --sonar-start "
-                "(UNIX s of its first ping, the navigation log's clock) to map it"
-            )
+            raise SeamapError(f"{path}: a raw Oculus capture has no receipt times: {unstamped}")
         if len(paths) > 1:
             raise SeamapError(f"{_names(paths)}: --sonar-start stamps one raw capture, not several")
         if clock.rate_hz is None:
@@ -343,11 +346,15 @@ def _stream(
     return final, (live_map, engine.stats)
 
 
-Scorer = Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]
+Scorer = Callable[
+    [SurveyResult, npt.NDArray[np.uint8], float, float, float, SonarFan], dict[str, Any]
+]
 """What scores a result against a reference (``report.json``'s ``accuracy``): called with
-the result, its north-up mosaic, the mosaic's west and north edges (UTM m) and its pixel
-(m). ``seamap replay --truth`` takes one from the ``seamap.scorers`` entry point ``truth``
-(the simulator's truth: ``tools.evaluation.truth.truth_scorer``); the product holds none."""
+the result, its north-up mosaic, the mosaic's west and north edges (UTM m), its pixel (m)
+and the sonar's fan as the mapper keeps it (range, fan, vertical beam: what a reference
+without the sonar's own geometry scores the lanes with). ``seamap replay --truth`` takes
+one from the ``seamap.scorers`` entry point ``truth`` (a simulator's truth or a reference
+trajectory: ``tools.evaluation.truth.truth_scorer``); the product holds none."""
 
 
 def replay(
@@ -503,13 +510,13 @@ def replay(
             },
         }
     if scorer is not None:
-        report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m)
+        report["accuracy"] = scorer(result, image, west, north, params.mosaic_res_m, fan)
         if live is not None and live[0] is result:
             report["accuracy_live"] = report["accuracy"]  # no survey-end pass: the live map
         elif live is not None:
             live_image, live_west, live_north = render(live[0])
             report["accuracy_live"] = scorer(
-                live[0], live_image, live_west, live_north, params.mosaic_res_m
+                live[0], live_image, live_west, live_north, params.mosaic_res_m, fan
             )
     write_report(out / "report.json", report)
     spill_dir.cleanup()

@@ -2,6 +2,9 @@
 
 Written from truth.json alone (``sonar`` geometry, per-ping ``pings`` poses), never from
 the mapper's geometry, so that a modelling error in the mapper cannot agree with itself.
+A reference trajectory of a real survey (``tools.evaluation.reference``) has no such
+geometry: it builds the same ``Heads`` and ``Fan`` from its poses, the config's mount and
+the pings' fan.
 
 Model: the sonar frame is the body frame (FRD) yawed by ``mount_yaw_deg`` and pitched
 down by ``tilt_deg``; the body frame is the grid north/east/down frame turned by the

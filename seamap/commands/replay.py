@@ -100,8 +100,13 @@ def register(subparsers: Any) -> None:
         "--truth",
         type=Path,
         default=None,
-        help="a simulator's truth.json: add accuracy to the report",
+        help=(
+            "add accuracy to the report against a simulator's truth.json or a reference "
+            "trajectory CSV (RTK+INS, total station: columns time,lat,lon,heading_deg, "
+            "optional east,north, roll_deg,pitch_deg, altitude_m; told apart by content)"
+        ),
     )
+    add_truth_matching(parser)
     parser.add_argument(
         "--area",
         type=Path,
@@ -144,6 +149,42 @@ def _when(text: str) -> float:
     return stamp.timestamp()
 
 
+def add_truth_matching(parser: argparse.ArgumentParser) -> None:
+    """``--truth-tolerance`` and ``--truth-max-gap``: how a reference trajectory's rows
+    are matched to the frames (``seamap replay`` and ``seamap evaluate``)."""
+    parser.add_argument(
+        "--truth-tolerance",
+        type=float,
+        default=None,
+        metavar="S",
+        help=(
+            "a reference trajectory row this close (s) to a frame's time stands for it when "
+            "it cannot be interpolated (default: half the median ping interval, so a row "
+            "is nearest to one frame only)"
+        ),
+    )
+    parser.add_argument(
+        "--truth-max-gap",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help=(
+            "interpolate a frame's reference pose between the rows before and after it "
+            "when they are at most this far apart (s; %(default)s); frames matched "
+            "neither way are left out and counted"
+        ),
+    )
+
+
+def truth_matching(args: argparse.Namespace) -> dict[str, Any]:
+    """The checked ``--truth-tolerance`` / ``--truth-max-gap`` as the scorer's keywords."""
+    for flag, value in (("--truth-tolerance", args.truth_tolerance),
+                        ("--truth-max-gap", args.truth_max_gap)):  # fmt: skip
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise SeamapError(f"{flag} {value}: must be 0 or more seconds")
+    return {"tolerance_s": args.truth_tolerance, "max_gap_s": args.truth_max_gap}
+
+
 class Progress:
     """One self-rewriting line on a terminal; silent when stderr is not a terminal."""
 
@@ -172,15 +213,16 @@ SCORERS = "seamap.scorers"
 ``--truth`` (installed with the simulator's tools)."""
 
 
-def truth_scorer(path: Path) -> Scorer:
-    """The installed ``truth`` scorer bound to ``path``; SeamapError when the file is
-    missing or no scorer is installed."""
+def truth_scorer(path: Path, **matching: Any) -> Scorer:
+    """The installed ``truth`` scorer bound to ``path`` (a simulator's truth.json or a
+    reference trajectory CSV; ``matching``: ``tolerance_s``, ``max_gap_s``); SeamapError
+    when the file is missing, is neither, or no scorer is installed."""
     if not path.is_file():
         raise SeamapError(f"--truth {path}: no such file")
     found = [e for e in entry_points(group=SCORERS) if e.name == "truth"]
     if not found:
         raise SeamapError(f"--truth {path}: no truth scorer is installed (the seamap tools)")
-    scorer: Scorer = found[0].load()(path)
+    scorer: Scorer = found[0].load()(path, **matching)
     return scorer
 
 
@@ -210,7 +252,8 @@ def run(args: argparse.Namespace) -> int:
         clock = CaptureClock(args.sonar_start, args.sonar_rate)
     elif args.sonar_rate is not None:
         raise SeamapError("--sonar-rate spaces a raw capture's pings: give --sonar-start too")
-    scorer = truth_scorer(args.truth) if args.truth is not None else None
+    matching = truth_matching(args)
+    scorer = truth_scorer(args.truth, **matching) if args.truth is not None else None
     progress = Progress()
     try:
         if args.survey is not None:
@@ -268,5 +311,10 @@ def run(args: argparse.Namespace) -> int:
         line = f"  accuracy: ATE {ate:.3f} m"
         if spacing.get("rmse") is not None:
             line += f", quadrat spacing RMSE {spacing['rmse']:.3f} m"
+        left_out = accuracy.get("reference", {}).get("mapped_without_reference", 0)
+        if left_out:
+            line += f" ({left_out} mapped frames without a reference pose left out)"
         print(line)
+        if accuracy.get("unavailable"):
+            print(f"  {accuracy['unavailable']}")
     return 0

@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from seamap.commands.replay import add_truth_matching
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
@@ -31,8 +33,15 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--nav", type=Path, action="append", help="MAVLink log (repeatable)")
     parser.add_argument("--config", type=Path, help="site TOML (default: the folder's site.toml)")
     parser.add_argument(
-        "--truth", type=Path, help="a simulator's truth.json (default: the folder's)"
+        "--truth",
+        type=Path,
+        help=(
+            "a simulator's truth.json (default: the folder's), or a reference trajectory "
+            "CSV (RTK+INS, total station: columns time,lat,lon,heading_deg, optional "
+            "east,north, roll_deg,pitch_deg, altitude_m; told apart by content)"
+        ),
     )
+    add_truth_matching(parser)
     parser.add_argument(
         "--quadrats",
         type=Path,
@@ -47,6 +56,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.errors import SeamapError
+    from seamap.commands.replay import truth_matching
     from tools.evaluation.run import evaluate_survey, resolve_inputs
 
     if args.survey is not None and (args.sonar or args.nav):
@@ -54,8 +64,9 @@ def run(args: argparse.Namespace) -> int:
     if args.every < 1:
         raise SeamapError(f"--every {args.every}: must be 1 or more")
     inputs = resolve_inputs(
-        args.survey, args.sonar, args.nav, args.config, args.truth, args.quadrats
-    )
+        args.survey, args.sonar, args.nav, args.config, args.truth, args.quadrats,
+        truth_matching(args),
+    )  # fmt: skip
     evaluate_survey(inputs, args.out, args.every, say=lambda text: print(text, flush=True))
     print(f"report: {args.out / 'report.md'} (tables.json, fig3-5 PNG)")
     return 0

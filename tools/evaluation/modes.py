@@ -70,8 +70,12 @@ def run_mode(
     *,
     params: Any = None,
     progress: Callable[[str, int, int], None] | None = None,
+    truth_matching: dict[str, Any] | None = None,
 ) -> ModeRun:
-    scorer = truth_scorer(truth) if truth is not None else None
+    """One mode's replay into ``out``, scored against ``truth`` (a simulator's truth or a
+    reference trajectory, matched with ``truth_matching``) when given."""
+    matching = truth_matching or {}
+    scorer = truth_scorer(truth, **matching) if truth is not None else None
     report = replay(
         sonar, nav, None, mode, out, config=config, scorer=scorer, params=params, progress=progress
     )

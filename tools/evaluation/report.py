@@ -89,9 +89,20 @@ def markdown(tables: dict[str, Any]) -> str:
             for m, r in t2["pairwise"].items()
         ],
     )
+    reference = t2.get("reference", {})
     if "truth" in t2:
-        out += ["Against the truth (baselines: their steps chained from the first gps-only "
-                "pose, a failed step bridged by gps-only's):", ""]  # fmt: skip
+        against = (
+            "the reference trajectory"
+            if reference.get("kind") == "reference trajectory"
+            else "the truth"
+        )
+        matched = (
+            f" {reference['frames_matched']} of {reference['frames']} frames had a reference pose."
+            if "frames_matched" in reference
+            else ""
+        )
+        out += [f"Against {against} (baselines: their steps chained from the first gps-only "
+                f"pose, a failed step bridged by gps-only's).{matched}", ""]  # fmt: skip
         out += _table(
             ["method", "ATE (m)", "ATE aligned (m)", "RPE 10 s (m)", "lanes RMS (m)",
              "lanes median (m)"],
@@ -110,6 +121,8 @@ def markdown(tables: dict[str, Any]) -> str:
                      _pair(spacing.get("rmse"), theirs_iii[1]), located])  # fmt: skip
     if all(v is None for v in tables["table_iii"].values()):
         out += ["No quadrats known (give `--truth` or `--quadrats`).", ""]
+        if reference.get("unavailable"):
+            out += [f"The reference trajectory: {reference['unavailable']}.", ""]
     else:
         out += _table(["method", "MAE", "RMSE", "located"], rows)
 

@@ -20,21 +20,30 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from daemon.config import SiteConfig, load_config
-from daemon.replay import mount_from_config, ping_source, pipeline_params, read_navigation
+from daemon.replay import (
+    check_captures,
+    mount_from_config,
+    ping_source,
+    pipeline_params,
+    read_navigation,
+)
 from drivers.errors import SeamapError
+from mapping.coverage import SonarFan
 from mapping.frames import LocalRegistration
 from tools.evaluation import blending, figures, modes, registration
 from tools.evaluation.baselines import REGISTRATION_BASELINES
 from tools.evaluation.metrics import Quadrat
 from tools.evaluation.preprocessing import CONFIGURATIONS, preprocessing_table
+from tools.evaluation.reference import SonarSetup
 from tools.evaluation.report import write_report
+from tools.evaluation.truth import replay_altitude
 
 Say = Callable[[str], None]
 
@@ -42,7 +51,8 @@ Say = Callable[[str], None]
 @dataclass(frozen=True)
 class Inputs:
     """What is evaluated: the survey's logs (segments in order), its config, and what is
-    known of its truth."""
+    known of its truth (a simulator's truth.json or a reference trajectory CSV, matched to
+    the frames with ``truth_matching``: ``tolerance_s``, ``max_gap_s``)."""
 
     sonar: list[Path]
     nav: list[Path]
@@ -51,6 +61,7 @@ class Inputs:
     truth: Path | None
     quadrats_path: Path | None
     name: str
+    truth_matching: dict[str, Any] = field(default_factory=dict)
 
 
 def resolve_inputs(
@@ -60,11 +71,14 @@ def resolve_inputs(
     config_path: Path | None,
     truth: Path | None,
     quadrats: Path | None,
+    truth_matching: dict[str, Any] | None = None,
 ) -> Inputs:
     """The logs of a survey folder (a simulator's ``sonar.oculus`` + ``nav.tlog``, or a
     daemon's ``sonar-NNN.oculus`` + ``nav-NNN.tlog`` segments) or those given; the config
     given, else the folder's ``site.toml``, else the defaults; the truth given, else a
-    simulator folder's ``truth.json``. SeamapError (one line) for what is missing."""
+    simulator folder's ``truth.json`` (a truth given may be a reference trajectory CSV,
+    ``tools.evaluation.reference``). SeamapError (one line) for what is missing or
+    malformed."""
     if survey is not None:
         if not survey.is_dir():
             raise SeamapError(f"{survey}: no such survey folder")
@@ -88,12 +102,13 @@ def resolve_inputs(
     for given in (truth, quadrats):
         if given is not None and not given.is_file():
             raise SeamapError(f"{given}: no such file")
+    matching = dict(truth_matching or {})
     if truth is not None:
-        from tools.evaluation.truth import load_truth
+        from tools.evaluation.truth import load_reference
 
-        load_truth(truth)  # a file that is not a simulator's truth says so now
+        load_reference(truth, **matching)  # a file that is no reference says so now
     config = load_config(config_path)
-    return Inputs(list(sonar), list(nav), config, config_path, truth, quadrats, name)
+    return Inputs(list(sonar), list(nav), config, config_path, truth, quadrats, name, matching)
 
 
 def evaluate_survey(inputs: Inputs, out: Path, every: int = 10, say: Say = print) -> dict[str, Any]:
@@ -107,6 +122,7 @@ def evaluate_survey(inputs: Inputs, out: Path, every: int = 10, say: Say = print
     skipped: dict[str, int] = {}
     pings = ping_source(inputs.sonar, skipped)
     nav, _ = read_navigation(inputs.nav, config)
+    check_captures(inputs.sonar, None, "seamap replay --sonar-start maps one; evaluate takes logs")
     times = [float(p.time) for p in pings()]
     if len(times) < 3:
         raise SeamapError(f"{inputs.sonar[0]}: too few sonar pings to evaluate ({len(times)})")
@@ -131,8 +147,9 @@ def evaluate_survey(inputs: Inputs, out: Path, every: int = 10, say: Say = print
     for k, mode in enumerate(modes.MODES):
         step.start(2, f"mapping {mode} ({k + 1}/{len(modes.MODES)})")
         runs[mode] = modes.run_mode(
-            inputs.sonar, inputs.nav, config, mode, out / "modes" / mode, inputs.truth
-        )
+            inputs.sonar, inputs.nav, config, mode, out / "modes" / mode, inputs.truth,
+            truth_matching=inputs.truth_matching,
+        )  # fmt: skip
         step.done(f"{runs[mode].report['frames']['mapped']} of {len(times)} frames mapped")
     epsg = runs["single-stage"].epsg
     quadrats = _quadrats(inputs, epsg)
@@ -189,9 +206,9 @@ def _quadrats(inputs: Inputs, epsg: int) -> list[Quadrat] | None:
     if inputs.quadrats_path is not None:
         return modes.read_quadrats(inputs.quadrats_path, epsg)
     if inputs.truth is not None:
-        from tools.evaluation.truth import load_truth, quadrats_of
+        from tools.evaluation.truth import load_reference
 
-        return quadrats_of(load_truth(inputs.truth)) or None
+        return load_reference(inputs.truth, **inputs.truth_matching).quadrats() or None
     return None
 
 
@@ -245,34 +262,42 @@ def _table_ii(
         },
     }
     if inputs.truth is not None:
-        section["truth"] = _with_truth(inputs.truth, times, pairwise, trajectories, runs)
+        # The altitude single-stage's replay used, so that the baselines' lanes are
+        # scored with the heads the modes' were.
+        altitude = replay_altitude(
+            runs["single-stage"].report.get("bottom", {}), inputs.config.sonar.altitude_m
+        )
+        sonar = SonarSetup(
+            mount, SonarFan.of_ping(next(iter(pings())), mount, params.preprocess), altitude
+        )
+        section["truth"], section["reference"] = _with_truth(
+            inputs, times, pairwise, trajectories, runs, epsg, sonar
+        )
     return section
 
 
 def _with_truth(
-    truth_path: Path,
+    inputs: Inputs,
     times: list[float],
     pairwise: dict[str, registration.PairwiseSteps],
     trajectories: dict[str, registration.Trajectory],
     runs: dict[str, modes.ModeRun],
-) -> dict[str, Any]:
-    """Each method's ATE, RPE over 10 s and lane disagreement against the truth: the
-    modes' from their reports, the baselines' from their chained steps."""
-    from tools.evaluation.truth import (
-        load_truth,
-        quadrats_of,
-        trajectory_section,
-        truth_heads,
-        truth_poses,
-    )
-    from tools.footprint import Fan
+    epsg: int,
+    sonar: SonarSetup,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Each method's ATE, RPE over 10 s and lane disagreement against the truth (or the
+    reference trajectory: its heads and fan from ``sonar``): the modes' from their
+    reports, the baselines' from their chained steps; and how the frames met the
+    reference (``Matched.summary``, with what it cannot score)."""
+    from tools.evaluation.truth import load_reference, trajectory_section
     from tools.lanes import lane_disagreement
 
-    truth = load_truth(truth_path)
+    assert inputs.truth is not None
+    source = load_reference(inputs.truth, **inputs.truth_matching)
     stamps = np.asarray(times, float)
-    true = truth_poses(truth, stamps)
-    heads, fan = truth_heads(truth, stamps), Fan.from_truth(truth)
-    centres = np.array([(q.east, q.north) for q in quadrats_of(truth)], float).reshape(-1, 2)
+    matched = source.at(stamps, epsg, sonar)
+    true, heads, fan = matched.poses, matched.heads, matched.fan
+    centres = np.array([(q.east, q.north) for q in source.quadrats()], float).reshape(-1, 2)
     gps = trajectories["gps-only"].by_time()
     reference = np.array([gps.get(round(t, 4), (np.nan,) * 3) for t in times], float)
     out: dict[str, Any] = {}
@@ -285,7 +310,10 @@ def _with_truth(
         est = registration.chained(found.steps, reference)
         lanes = lane_disagreement(stamps, true, est, heads, fan, centres)
         out[name] = _truth_row(trajectory_section(stamps, est, true), lanes)
-    return out
+    summary = dict(matched.summary)
+    if source.unavailable:
+        summary["unavailable"] = source.unavailable
+    return out, summary
 
 
 def _truth_row(trajectory: dict[str, Any], lanes: dict[str, Any]) -> dict[str, Any]:
@@ -322,6 +350,7 @@ def _table_iv(
                 inputs.sonar, inputs.nav, inputs.config, "single-stage",
                 out / "lambda" / f"{lam:.0e}", inputs.truth,
                 params=modes.lambda_params(inputs.config, lam),
+                truth_matching=inputs.truth_matching,
             )  # fmt: skip
         trajectory = registration.read_trajectory(run.folder / "trajectory.csv", epsg)
         steps = registration.trajectory_steps(trajectory, pairs)

@@ -1,13 +1,16 @@
-"""Score a mapping result against a simulator's truth (``truth.json`` and ``seabed.tif``).
+"""Score a mapping result against a reference: the simulator's truth (``truth.json`` and
+``seabed.tif``) or a reference trajectory CSV (``tools.evaluation.reference``).
 
 Reports the absolute trajectory error of the vehicle reference point, heading error,
-relative-pose consistency and the relative pose error over 10 s against the truth; the
+relative-pose consistency and the relative pose error over 10 s against the reference; the
 lane disagreement (``tools.lanes``: how far apart two passes over the same seabed draw
-it, from the true fans and the estimated poses); the quadrat-spacing error of the paper's
-Table III (each quadrat array located in the mosaic as a rigid layout, then each frame by
-template matching) within each array, and each array's offset from the truth (the
-georeferencing error); and a displacement field between the mosaic and the true seabed
-(phase correlation in patches).
+it, from the true fans and the estimated poses); with the simulator's truth also the
+quadrat-spacing error of the paper's Table III (each quadrat array located in the mosaic
+as a rigid layout, then each frame by template matching) within each array, and each
+array's offset from the truth (the georeferencing error); and a displacement field between
+the mosaic and the true seabed (phase correlation in patches). Both kinds of reference
+feed ``evaluate`` through ``Reference.at`` (true poses, heads and fan per frame time), so
+every metric is computed one way.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import json
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +29,7 @@ import numpy.typing as npt
 import rasterio
 
 from drivers.errors import SeamapError
+from mapping.coverage import SonarFan
 from mapping.pipeline import SurveyResult
 from tools.evaluation.metrics import (
     Found,
@@ -36,6 +41,14 @@ from tools.evaluation.metrics import (
     locate_quadrats,
     quadrat_spacing_error,
     relative_pose_consistency,
+)
+from tools.evaluation.reference import (
+    MAX_GAP_S,
+    Matched,
+    Reference,
+    SonarSetup,
+    looks_like_csv,
+    read_reference_csv,
 )
 from tools.footprint import Fan, Heads, fan_hits
 from tools.lanes import lane_disagreement
@@ -51,7 +64,10 @@ def load_truth(path: Path) -> dict[str, Any]:
     except FileNotFoundError:
         raise SeamapError(f"{path}: no such truth file") from None
     except (OSError, ValueError) as exc:
-        raise SeamapError(f"{path}: not a readable truth.json ({exc})") from None
+        raise SeamapError(
+            f"{path}: not a readable truth.json ({exc}) nor a reference trajectory CSV "
+            "(a header row with time,lat,lon,heading_deg)"
+        ) from None
     if truth.get("format") != "seamap-sim-truth":
         raise SeamapError(f"{path}: not a seamap simulator truth file")
     return truth
@@ -232,17 +248,21 @@ def quadrat_section(
 
 
 def evaluate(
-    truth_path: Path,
+    reference: Reference | Path,
     result: SurveyResult,
     mosaic: npt.NDArray[np.uint8],
     west: float,
     north: float,
     res_m: float,
+    sonar: SonarSetup | None = None,
 ) -> dict[str, Any]:
-    """The accuracy of one mapping result against the simulator's truth (report.json's
-    ``accuracy``): ``trajectory``, ``lanes``, ``mosaic_quality``, ``quadrat_spacing``
-    (when the truth has quadrats), ``mosaic_vs_seabed`` (when it has the seabed), and the
-    seconds each took (``timings_s``)."""
+    """The accuracy of one mapping result against a reference (report.json's
+    ``accuracy``): ``reference`` (how the frames met it), ``trajectory``, ``lanes``,
+    ``mosaic_quality``, ``quadrat_spacing`` (when the reference has quadrats),
+    ``mosaic_vs_seabed`` (when it has the seabed), ``unavailable`` (why not, for a
+    reference trajectory), and the seconds each took (``timings_s``). A path is read with
+    ``load_reference``; ``sonar``: what the replay knows of the sonar (a reference
+    trajectory's heads and fan are built from it)."""
     clock = time.perf_counter()
     timings: dict[str, float] = {}
 
@@ -252,14 +272,25 @@ def evaluate(
         timings[name] = round(now - clock, 4)
         clock = now
 
-    truth = load_truth(truth_path)
+    if isinstance(reference, Path):
+        reference = load_reference(reference)
     est = estimated_poses(result)
-    true = truth_poses(truth, result.times)
-    report: dict[str, Any] = {"trajectory": trajectory_section(result.times, est, true)}
+    matched = reference.at(result.times, result.frame.epsg, sonar)
+    true = matched.poses
+    mapped = np.all(np.isfinite(est), axis=1)
+    known = np.all(np.isfinite(true), axis=1)
+    report: dict[str, Any] = {
+        "reference": {
+            **matched.summary,
+            "frames_mapped": int(mapped.sum()),
+            "mapped_without_reference": int((mapped & ~known).sum()),
+        },
+        "trajectory": trajectory_section(result.times, est, true),
+    }
     lap("trajectory")
-    quadrats = quadrats_of(truth)
+    quadrats = reference.quadrats()
     centres = np.array([(q.east, q.north) for q in quadrats], float).reshape(-1, 2)
-    heads, fan = truth_heads(truth, result.times), Fan.from_truth(truth)
+    heads, fan = matched.heads, matched.fan
     report["lanes"] = lane_disagreement(result.times, true, est, heads, fan, centres)
     lap("lanes")
     covered = mosaic > 0
@@ -272,7 +303,7 @@ def evaluate(
             quadrats, views, image, covered, west, north, res_m
         )
         lap("quadrat_spacing")
-    seabed = seabed_on_grid(truth_path, truth, mosaic.shape, west, north, res_m)
+    seabed = reference.seabed_on_grid(mosaic.shape, west, north, res_m)
     if seabed is not None:
         field = displacement_field(image, covered, seabed)
         report["mosaic_vs_seabed"] = {
@@ -284,21 +315,83 @@ def evaluate(
             "patches": field["patches"],
         }
         lap("mosaic_vs_seabed")
+    if reference.unavailable:
+        report["unavailable"] = reference.unavailable
     report["timings_s"] = timings
     return report
 
 
+@dataclass(frozen=True)
+class SimTruth:
+    """The simulator's truth.json as a ``Reference``: the true poses and heads of the
+    pings whose stamp is the frame's (``truth_poses``, ``truth_heads``), the true fan
+    (``Fan.from_truth``), its quadrats and seabed."""
+
+    path: Path
+    truth: dict[str, Any]
+    unavailable: str | None = None
+
+    def at(self, times: Array, epsg: int, sonar: SonarSetup | None) -> Matched:
+        poses = truth_poses(self.truth, times)
+        matched = int(np.all(np.isfinite(poses), axis=1).sum())
+        summary = {
+            "kind": "simulator truth",
+            "path": str(self.path),
+            "frames": int(times.size),
+            "frames_matched": matched,
+            "frames_unmatched": int(times.size) - matched,
+        }
+        return Matched(poses, truth_heads(self.truth, times), Fan.from_truth(self.truth), summary)
+
+    def quadrats(self) -> list[Quadrat]:
+        return quadrats_of(self.truth)
+
+    def seabed_on_grid(
+        self, shape: tuple[int, int], west: float, north: float, res: float
+    ) -> Array | None:
+        return seabed_on_grid(self.path, self.truth, shape, west, north, res)
+
+
+def load_reference(
+    path: Path, tolerance_s: float | None = None, max_gap_s: float = MAX_GAP_S
+) -> Reference:
+    """The reference in ``path``, told by its content: a simulator's truth.json (a JSON
+    object, ``format`` "seamap-sim-truth") or a reference trajectory CSV (a header row
+    naming its columns; ``tolerance_s`` and ``max_gap_s`` match its times to the frames',
+    ``tools.evaluation.reference``). SeamapError (one line) if it is neither."""
+    if not path.is_file():
+        raise SeamapError(f"{path}: no such truth file")
+    if looks_like_csv(path):
+        return read_reference_csv(path, tolerance_s, max_gap_s)
+    return SimTruth(path, load_truth(path))
+
+
 def truth_scorer(
-    truth_path: Path,
-) -> Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float], dict[str, Any]]:
-    """The scorer ``daemon.replay.replay`` takes (``Scorer``): ``evaluate`` against this
-    simulator truth file; the ``seamap.scorers`` entry point ``truth`` (``seamap replay
-    --truth``)."""
+    truth_path: Path, tolerance_s: float | None = None, max_gap_s: float = MAX_GAP_S
+) -> Callable[[SurveyResult, npt.NDArray[np.uint8], float, float, float, SonarFan], dict[str, Any]]:
+    """The scorer ``daemon.replay.replay`` takes (``Scorer``): ``evaluate`` against the
+    reference in this file (``load_reference``, read now: a bad file fails before any
+    mapping); the ``seamap.scorers`` entry point ``truth`` (``seamap replay --truth``).
+    A reference trajectory's sonar is the result's mount with the replay's fan, at the
+    altitude the replay used (``replay_altitude``)."""
+    reference = load_reference(truth_path, tolerance_s, max_gap_s)
 
     def score(
         result: SurveyResult, mosaic: npt.NDArray[np.uint8], west: float, north: float,
-        res_m: float,
+        res_m: float, fan: SonarFan,
     ) -> dict[str, Any]:  # fmt: skip
-        return evaluate(truth_path, result, mosaic, west, north, res_m)
+        altitude = replay_altitude(result.bottom, result.mount.altitude_m)
+        sonar = SonarSetup(result.mount, fan, altitude)
+        return evaluate(reference, result, mosaic, west, north, res_m, sonar)
 
     return score
+
+
+def replay_altitude(bottom: dict[str, Any], configured_m: float) -> float:
+    """The sonar's altitude above the seabed a replay used (m): the median of its seabed
+    planes' (from echosounder or sonar soundings: ``SurveyResult.bottom``, report.json's
+    ``bottom``), else the configured one."""
+    found = bottom.get("altitude_m")
+    if isinstance(found, dict) and found.get("median") is not None:
+        return float(found["median"])
+    return float(configured_m)
