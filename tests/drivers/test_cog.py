@@ -55,7 +55,8 @@ def check_cog_layout(path: Path) -> list[tuple[int, ...]]:
     coarse view from the first ranges). Returns the levels' shapes."""
     assert path.read_bytes()[8:38] == b"GDAL_STRUCTURAL_METADATA_SIZE="
     with tifffile.TiffFile(path) as tif:
-        pages = list(tif.pages)
+        pages = [page for page in tif.pages if isinstance(page, tifffile.TiffPage)]
+        assert len(pages) == len(tif.pages)
         shapes = [page.shape for page in pages]
         ifds = [page.offset for page in pages]
         tiles = [
