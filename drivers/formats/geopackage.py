@@ -24,8 +24,7 @@ import shapely
 from pyogrio.errors import DataLayerError, DataSourceError, FeatureError, FieldError
 from shapely.geometry.polygon import orient
 
-from drivers.errors import SeamapError
-from drivers.formats.results import TRAJECTORY_COLUMNS, trajectory_table
+from drivers.formats.results import TRAJECTORY_COLUMNS, trajectory_table, write_error
 from mapping.geo import LocalFrame
 
 SURVEY_GPKG = "survey.gpkg"
@@ -85,8 +84,8 @@ def write_survey_gpkg(
     """Write survey.gpkg (see the module docstring): ``poses`` are local (x, y, grid
     heading in radians) of ``frame`` as ``write_trajectory`` takes them, ``area`` and
     ``gaps`` polygons in local metres of ``frame``, ``coverage`` report.json's coverage
-    object. Returns the layers written; a write that fails is a SeamapError naming the
-    file (GDAL's reason kept: a full disk says so)."""
+    object. Returns the layers written; a write that fails is an OSError naming the file
+    (``drivers.formats.results.write_error``)."""
     epsg = frame.epsg
     table = trajectory_table(frame, times, poses)
     layers = [_track(table), _poses(table)]
@@ -117,8 +116,7 @@ def write_survey_gpkg(
             os.fsync(stream.fileno())
         os.replace(tmp, path)
     except (DataSourceError, DataLayerError, FeatureError, FieldError, OSError) as exc:
-        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise SeamapError(f"{path}: cannot write the GeoPackage ({reason})") from exc
+        raise write_error(path, "GeoPackage", exc) from exc
     finally:
         tmp.unlink(missing_ok=True)
     return [layer.name for layer in layers]

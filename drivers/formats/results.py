@@ -44,6 +44,17 @@ def _atomic(path: Path, mode: str = "w") -> Iterator[IO[Any]]:
     os.replace(tmp, path)
 
 
+def write_error(path: Path, what: str, exc: Exception) -> OSError:
+    """An OSError in one line naming the file and GDAL's reason, with the errno of the
+    error below when it had one (a full disk stays ENOSPC): the writers' callers handle
+    write failures as OSError, as they do a failed open()."""
+    reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+    message = f"{path}: cannot write the {what} ({reason})"
+    if isinstance(exc, OSError) and exc.errno is not None:
+        return OSError(exc.errno, message)
+    return OSError(message)
+
+
 COG_BLOCK_PX = 512
 """Tile side of mosaic.tif and coverage.tif (GDAL's COG default). Overviews halve the
 image until one fits in a tile. On a 5000 x 5000 px mosaic 256 px tiles were as large
@@ -67,8 +78,8 @@ def _write_cog(
     tiled GTiff beside the output (on disk, not in memory: a mosaic of a long survey
     already fills a good part of the boat computer's memory once). ``resampling`` is
     GDAL's name of the overviews' resampling; it honours the nodata value of
-    ``profile``: averaging leaves no-data pixels out. A write that fails is a SeamapError
-    naming the file (raised from GDAL's error: a full disk still tells)."""
+    ``profile``: averaging leaves no-data pixels out. A write that fails is an OSError
+    naming the file (``write_error``)."""
     source = path.with_name(f".{path.name}.src.tmp")
     tmp = path.with_name(f".{path.name}.tmp")
     count, rows, cols = bands.shape
@@ -91,8 +102,7 @@ def _write_cog(
             )  # fmt: skip
         os.replace(tmp, path)
     except (RasterioError, OSError) as exc:
-        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise SeamapError(f"{path}: cannot write the GeoTIFF ({reason})") from exc
+        raise write_error(path, "GeoTIFF", exc) from exc
     finally:
         source.unlink(missing_ok=True)
         tmp.unlink(missing_ok=True)
