@@ -96,8 +96,8 @@ def write_survey_gpkg(
     layers.append(_coverage(coverage))
     # GDAL's GPKG driver wants the .gpkg extension, hence the temporary name's order.
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    tmp.unlink(missing_ok=True)
     try:
+        tmp.unlink(missing_ok=True)  # a temporary left by a write cut short
         for layer in layers:
             names = list(layer.fields)
             pyogrio.raw.write(
