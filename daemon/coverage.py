@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import shapely
 
 from daemon.config import CoverageConfig
 from drivers.formats.area import SurveyArea, area_in
@@ -96,16 +97,28 @@ def _area_report(found: AreaCoverage, min_gap_m2: float) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class CoverageWritten:
+    """What ``write_coverage`` wrote: report.json's "coverage" object, the files and,
+    with an area, the area's polygons and its gaps (local metres of the survey's frame,
+    gaps largest first, as gaps.geojson numbers them)."""
+
+    report: dict[str, Any]
+    files: list[str]
+    area: tuple[shapely.Polygon, ...] | None = None
+    gaps: tuple[shapely.Polygon, ...] | None = None
+
+
 def write_coverage(
     out: Path,
     result: SurveyResult,
     fan: SonarFan,
     config: CoverageConfig,
     area: AreaSource | None = None,
-) -> tuple[dict[str, Any], list[str]]:
+) -> CoverageWritten:
     """Write coverage.tif, coverage.png and, with an area, gaps.geojson into ``out``
     (without one, a gaps.geojson left by an earlier run goes: it would not be this
-    survey's); returns report.json's "coverage" object and the files written."""
+    survey's)."""
     params = coverage_params(config)
     grid = survey_coverage(result, fan, params)
     epsg = result.frame.epsg
@@ -131,9 +144,12 @@ def write_coverage(
     gaps_path = out / GAPS_GEOJSON
     if area is None:
         gaps_path.unlink(missing_ok=True)
-        return report, files
+        return CoverageWritten(report, files)
     found = area_coverage(grid, params.min_passes, result.frame, area.area, config.min_gap_m2)
     write_gaps(gaps_path, found.gaps, result.frame)
     files.append(GAPS_GEOJSON)
     report["area"] = {"file": str(area.path), **_area_report(found, config.min_gap_m2)}
-    return report, files
+    polygons = tuple(
+        shapely.Polygon(p.outer, list(p.holes)) for p in area_in(area.area, result.frame).polygons
+    )
+    return CoverageWritten(report, files, polygons, found.gaps)

@@ -4,7 +4,8 @@ The glue between the drivers (log readers), the core (``mapping.pipeline``) and 
 writers; the same core the daemon runs live. A survey recorded in several segments (one
 per daemon start: ``sonar-NNN.oculus``, ``nav-NNN.tlog``) is replayed as one survey. The
 survey's coverage goes with the mosaic (``daemon.coverage``), and its gaps when its area
-is given.
+is given; its track, poses, area, gaps and coverage summary go as vectors into survey.gpkg
+(``drivers.formats.geopackage``).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from daemon.recording import segments
 from daemon.workers import live_front, task_pool
 from drivers.errors import SeamapError
 from drivers.formats.area import read_area
+from drivers.formats.geopackage import SURVEY_GPKG, write_survey_gpkg
 from drivers.formats.results import write_geotiff, write_png, write_report, write_trajectory
 from drivers.formats.tilespill import DiskSpill
 from drivers.oculus.logfile import V1_FILE_HEADER_SIZE, CaptureClock
@@ -449,8 +451,14 @@ def replay(
     t0 = time.perf_counter()
     # The sonar's fan as the mapper kept it, from the first ping (as the loop closures do).
     fan = SonarFan.of_ping(next(iter(pings())), mount, params.preprocess)
-    coverage, coverage_files = write_coverage(out, result, fan, config.coverage, survey_area)
+    written = write_coverage(out, result, fan, config.coverage, survey_area)
+    coverage = written.report
     coverage_s = time.perf_counter() - t0
+    write_survey_gpkg(
+        out / SURVEY_GPKG, result.frame, result.times, result.poses, coverage,
+        written.area, written.gaps,
+    )  # fmt: skip
+    files = ["mosaic.tif", "mosaic.png", "trajectory.csv", *written.files, SURVEY_GPKG]
     timings = {k: round(v, 4) for k, v in result.timings.items()}
     timings["render"] = round(render_s, 4)
     timings["coverage"] = round(coverage_s, 4)
@@ -484,7 +492,7 @@ def replay(
         },
         "trajectory_rows": rows,
         "coverage": coverage,
-        "files": ["mosaic.tif", "mosaic.png", "trajectory.csv", *coverage_files, "report.json"],
+        "files": [*files, "report.json"],
         "timings_s": timings,
         "seconds_per_frame": {k: round(v / n, 6) for k, v in timings.items()},
         "settings": {"config": asdict(config), "pipeline": asdict(params)},

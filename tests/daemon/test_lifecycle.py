@@ -137,7 +137,10 @@ def test_an_interrupted_survey_end_pass_runs_again_at_start(tmp_path: Path) -> N
     code, log = asyncio.run(main())
     assert code == 0, log
     assert "rerunning an interrupted survey-end pass" in log
-    files = ["mosaic.tif", "mosaic.png", "trajectory.csv", "coverage.tif", "coverage.png"]
+    files = [
+        "mosaic.tif", "mosaic.png", "trajectory.csv", "coverage.tif", "coverage.png",
+        "survey.gpkg",
+    ]  # fmt: skip
     for name in files:
         assert (folder / name).is_file()
     assert json.loads((folder / "survey.json").read_text())["result"]["files"] == [

@@ -18,6 +18,7 @@ from pyproj import Transformer
 
 from drivers.oculus import iter_log_items
 from seamap.cli import main
+from tests.drivers.gpkg_reader import read_gpkg
 from tools.evaluation.metrics import locate_quadrats, quadrat_spacing_error
 from tools.evaluation.truth import quadrats_of
 from tools.sim import simulate
@@ -96,6 +97,51 @@ def test_result_folder_follows_the_contract(survey: Path, result: Path) -> None:
         assert key in report["frames"]
     for stage in ("preprocess", "registration", "ekf", "optimisation", "blending", "total"):
         assert stage in report["timings_s"]
+
+
+def test_survey_gpkg_holds_the_track_area_gaps_and_coverage(result: Path) -> None:
+    """survey.gpkg read without GDAL: its poses are trajectory.csv's rows, its track runs
+    through them, its gaps are gaps.geojson's, all in the mosaic's CRS."""
+    report = json.loads((result / "report.json").read_text())
+    assert report["files"][-2:] == ["survey.gpkg", "report.json"]
+    layers, systems = read_gpkg(result / "survey.gpkg")
+    assert set(layers) == {"track", "poses", "area", "gaps", "coverage"}
+    with rasterio.open(result / "mosaic.tif") as mosaic:
+        epsg = mosaic.crs.to_epsg()
+        assert mosaic.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+    assert systems[epsg][1] == epsg
+    assert all(layers[name].srs_id == epsg for name in ("track", "poses", "area", "gaps"))
+    with (result / "trajectory.csv").open() as stream:
+        rows = list(csv.DictReader(stream))
+    poses = layers["poses"].rows
+    assert len(poses) == len(rows) == report["frames"]["mapped"]
+    for pose, row in zip(poses, rows, strict=True):
+        assert pose["time"] == pytest.approx(float(row["time"]), abs=1e-6)
+        assert pose["east"] == pytest.approx(float(row["east"]), abs=1e-4)
+        assert pose["north"] == pytest.approx(float(row["north"]), abs=1e-4)
+        assert pose["heading_deg"] == pytest.approx(float(row["heading_deg"]), abs=1e-4)
+    (line,) = layers["track"].geometries
+    assert isinstance(line, shapely.LineString) and len(line.coords) == len(rows)
+    gaps = json.loads((result / "gaps.geojson").read_text())["features"]
+    assert [g["id"] for g in layers["gaps"].rows] == [f["id"] for f in gaps]
+    to_wgs84 = Transformer.from_crs(epsg, 4326, always_xy=True)
+    for polygon, feature in zip(layers["gaps"].geometries, gaps, strict=True):
+        lonlat = shapely.transform(
+            polygon, lambda en: np.column_stack(to_wgs84.transform(en[:, 0], en[:, 1]))
+        )
+        # geojson rounds to 1e-8 degrees: a millimetre.
+        assert (
+            shapely.hausdorff_distance(lonlat, shapely.geometry.shape(feature["geometry"])) < 1e-7
+        )
+    (outline,) = layers["area"].geometries
+    area = report["coverage"]["area"]
+    assert shapely.area(outline) == pytest.approx(area["area_m2"], rel=1e-6)
+    # The lane and the gaps lie in the area.
+    assert shapely.buffer(outline, 1e-6).contains(shapely.union_all(layers["gaps"].geometries))
+    (summary,) = layers["coverage"].rows
+    assert summary["covered_fraction"] == area["covered_fraction"]
+    assert summary["covered_m2"] == report["coverage"]["covered_m2"]
+    assert summary["gaps"] == len(gaps)
 
 
 def _rigid_fit(true: np.ndarray, found: np.ndarray) -> tuple[float, np.ndarray]:
