@@ -64,6 +64,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Output piped into `head` and closed early: not an error worth a traceback.
         sys.stderr.close()
         return 0
+    except OSError as exc:
+        # The machine, not the input: a full disk, a folder that cannot be written. What
+        # was written before stays (results go to a temporary name, then renamed).
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"seamap {args.command}: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     return status
 
 

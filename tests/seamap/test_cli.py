@@ -243,3 +243,23 @@ def test_the_product_loads_no_tool_and_finds_the_installed_ones() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["[]", "True"]
+
+
+def test_a_full_disk_is_one_line_naming_the_file(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import errno
+
+    import daemon.replay
+    from seamap.cli import main
+
+    def full(*args: object, **kwargs: object) -> dict[str, object]:
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "mosaic.tif"))
+
+    monkeypatch.setattr(daemon.replay, "replay", full)
+    for name in ("s.oculus", "n.tlog"):
+        (tmp_path / name).write_bytes(b"x")
+    args = ["replay", "--sonar", tmp_path / "s.oculus", "--nav", tmp_path / "n.tlog"]
+    assert main([*map(str, args), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"seamap replay: {tmp_path / 'mosaic.tif'}: No space left on device"]
