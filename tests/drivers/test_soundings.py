@@ -426,7 +426,7 @@ def test_summary_counts_the_soundings_and_keeps_its_keys(
         assert key in printed
     assert printed["soundings"] == 19
     assert main(["info", str(tlog)]) == 0
-    assert "soundings:  19 (DISTANCE_SENSOR, downward)" in capsys.readouterr().out
+    assert "soundings:      19 (DISTANCE_SENSOR, downward)" in capsys.readouterr().out
 
 
 # --- the live link ----------------------------------------------------------------------------
