@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from drivers.oculus import (
     LogReadReport,
@@ -25,7 +27,7 @@ from drivers.oculus import (
     summarize_oculus_log,
 )
 from drivers.oculus.logfile import RAW_CAPTURE, CaptureClock
-from tests.drivers.test_oculus_logfile import T0, make_v2_log, write_log
+from tests.drivers.test_oculus_logfile import CUT, EDITS, T0, _mutated, make_v2_log, write_log
 from tests.drivers.test_oculus_protocol import (
     DATA_DIR,
     REAL_PING_SIZE,
@@ -33,6 +35,7 @@ from tests.drivers.test_oculus_protocol import (
     make_ping,
     real_pings,
 )
+from tests.fuzzing import fuzz
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -234,3 +237,35 @@ def test_every_ping_variant_reads_exactly_from_every_container(
     assert [item.item_type for item in iter_log_items(path)] == [
         10 if log_version != 2 else 1
     ] * len(VARIANTS)
+
+
+_CAPTURE_PINGS = [
+    build_simple_ping(
+        make_ping(n_beams=16, n_ranges=8, seed=k, ping_id=k, gains=k == 1), version=1 + k % 2
+    )
+    for k in range(3)
+]
+
+
+@pytest.mark.fuzz
+@fuzz(150)
+@given(edits=EDITS, span=CUT, clocked=st.booleans())
+def test_mutated_captures_never_crash_the_reader(
+    tmp_path: Path, edits: list[tuple[int, int]], span: tuple[int, int], clocked: bool
+) -> None:
+    """A raw capture with bytes changed and a span cut anywhere: the reader gives what it
+    can frame, or one OculusFormatError (not a capture; a clock it cannot stamp by),
+    never another exception; every ping it gives is a whole one."""
+    path = tmp_path / "mutated.raw"
+    path.write_bytes(_mutated(b"".join(_CAPTURE_PINGS), edits, span))
+    report = LogReadReport()
+    clock = CaptureClock(T0, None if clocked else 5.0)
+    try:
+        pings = list(iter_pings(path, report, clock))
+        summarize_oculus_log(path)
+    except OculusFormatError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert report.pings == len(pings) <= report.items
+    for ping in pings:
+        assert math.isfinite(ping.time) and ping.image.shape == (8, 16)
