@@ -8,6 +8,20 @@ refused at the door, and one with another user's password is let in but allowed 
 
 Negative checks first see a message of their own kind go through the same link (a
 positive control), then wait ``QUIET_S`` more before asserting that nothing else came.
+
+What the tests wait for, so that a loaded machine cannot fail them:
+
+- a put reaches a subscriber only if the router already holds the subscription when the
+  put arrives (it comes on another session's link). A session's messages reach the router
+  in order, so once a round trip the subscriber's session made *after* subscribing has
+  come back (the station: the boats' tokens its liveliness subscriber was given; shore-2:
+  a liveliness ``get``), the router holds the subscription;
+- the tests' own puts use congestion control BLOCK: a put with DROP (zenoh's default) may
+  be dropped at the router when the link to the subscriber is busy, and a positive
+  control or a forged message must not be lost that way. The boats' publisher puts live
+  tiles, poses and status with DROP (its design: a slow shore loses them), so the boats'
+  tiles are checked through the station's catch-up (a ``get``; its replies are BLOCK)
+  and poses and status are published while no tile is on the way.
 """
 
 from __future__ import annotations
@@ -32,6 +46,7 @@ from cryptography import x509
 from daemon.config import ZenohConfig, config_from_dict, load_config
 from daemon.publisher import ZenohPublisher
 from drivers.zenoh_io import (
+    alive_key,
     control_key,
     json_bytes,
     open_session,
@@ -50,6 +65,7 @@ from tests.seamap.test_fleet import BOATS, SURVEY, _holds, _pose, _tile
 SEAMAP = str(Path(sys.executable).parent / "seamap")
 WAIT_S = 20.0
 QUIET_S = 1.5
+BLOCK = zenoh.CongestionControl.BLOCK
 
 
 # --- the set, the router and the clients, as the set's files say -----------------------------
@@ -173,6 +189,14 @@ def fleet(made: FleetSecuritySet, tmp_path_factory: pytest.TempPathFactory) -> I
         sessions.append(observer)
         observed = Inbox()
         keep = observer.declare_subscriber("seamap/**", observed.on_sample)
+        # The router holds each subscription once a round trip the subscriber's session
+        # made after subscribing is back: the station's tokens, shore-2's liveliness get.
+        assert station.run(WAIT_S, until=lambda s: all(s.alive(v) for v in BOATS)), (
+            "the station never saw both boats' tokens"
+        )
+        tokens = observer.liveliness().get(alive_key("*"), timeout=WAIT_S)
+        alive = sorted(str(t.ok.key_expr) for t in tokens if t.ok is not None)
+        assert alive == [alive_key(v) for v in BOATS], f"shore-2 sees tokens {alive}"
         yield Fleet(made, endpoint, router, boats, station, observer, observed)
         del keep
     finally:
@@ -246,22 +270,31 @@ def test_the_fleet_set_holds_every_sides_files_with_secrets_private(
 
 def test_the_shore_follows_both_boats_and_stops_a_survey(fleet: Fleet) -> None:
     until(fleet, lambda s: all(s.alive(v) is True for v in BOATS), "both boats' tokens")
-    sent: dict[str, list[TileUpdate]] = {}
+    # Poses and status first, while no tile is on the way: they are put with congestion
+    # control DROP, and two boats' tiles (~70 kB each) fill the router's queue to the
+    # shore (two batches of 64 kB), so a message arriving then may be dropped.
     for b, (vehicle, boat) in enumerate(fleet.boats.items()):
-        update = _tile(b, 0, seed=20 + b)
-        boat.publisher.tile(SURVEY, update)
         boat.publisher.pose(_pose(b, 100.0))
         boat.publisher.status({"vehicle": vehicle, "frames": {"mapped": 3 + b}})
-        sent[vehicle] = [update]
 
-    def everything(station: ShoreStation) -> bool:
-        return _holds(sent)(station) and all(
+    def poses_and_status(station: ShoreStation) -> bool:
+        return all(
             any(p.time == 100.0 for p in station.track(v))
             and (station.status(v) or {}).get("frames", {}).get("mapped") == 3 + b
             for b, v in enumerate(BOATS)
         )
 
-    until(fleet, everything, "both boats' tiles, poses and status")
+    until(fleet, poses_and_status, "both boats' poses and status")
+    # A live tile (DROP) can be dropped that way too; the shore's catch-up cannot (a get,
+    # its replies are BLOCK). Asked after the tiles were handed to the publishers, it is
+    # answered after they hold them (one thread takes both, tiles first).
+    sent: dict[str, list[TileUpdate]] = {}
+    for b, (vehicle, boat) in enumerate(fleet.boats.items()):
+        update = _tile(b, 0, seed=20 + b)
+        boat.publisher.tile(SURVEY, update)
+        sent[vehicle] = [update]
+    fleet.station.catch_up()
+    until(fleet, _holds(sent), "both boats' tiles")
     # Each boat's tile store answers a catch-up asked of every vehicle (seamap/*/...).
     tiles = fleet.observer.get(tiles_selector("*", SURVEY), target=zenoh.QueryTarget.ALL)
     keys = [parse_tile_key(str(r.ok.key_expr)) for r in tiles if r.ok is not None]
@@ -276,20 +309,21 @@ def test_the_shore_follows_both_boats_and_stops_a_survey(fleet: Fleet) -> None:
 def test_a_boat_cannot_publish_answer_or_be_alive_as_another(fleet: Fleet) -> None:
     boat1 = fleet.boats["boat1"].session
     forged_pose = pose_bytes(777.0, 1.0)
-    boat1.put(pose_key("boat2"), forged_pose)
+    boat1.put(pose_key("boat2"), forged_pose, congestion_control=BLOCK)
     forged_token = boat1.liveliness().declare_token("seamap/boat2/forged/alive")
     forged_queryable = boat1.declare_queryable(
         control_key("boat2") + "/forged", lambda q: q.reply(q.key_expr, b"forged")
     )
     own = pose_bytes(778.0, 2.0)
-    boat1.put(pose_key("boat1"), own)
+    boat1.put(pose_key("boat1"), own, congestion_control=BLOCK)
     observed(fleet, own)  # boat1's own pose passes the same link
     time.sleep(QUIET_S)
     assert forged_pose not in fleet.observed.payloads()
     assert all(p.time != 777.0 for p in fleet.station.track("boat2"))
-    tokens = list(fleet.observer.liveliness().get("seamap/boat2/**", timeout=QUIET_S))
+    # Both gets end when the router has answered (the timeout only bounds a lost answer).
+    tokens = list(fleet.observer.liveliness().get("seamap/boat2/**", timeout=WAIT_S))
     assert [str(t.ok.key_expr) for t in tokens if t.ok is not None] == ["seamap/boat2/alive"]
-    replies = list(fleet.observer.get(control_key("boat2") + "/forged", timeout=QUIET_S))
+    replies = list(fleet.observer.get(control_key("boat2") + "/forged", timeout=WAIT_S))
     assert [r for r in replies if r.ok is not None] == []
     forged_token.undeclare()
     forged_queryable.undeclare()
@@ -297,10 +331,10 @@ def test_a_boat_cannot_publish_answer_or_be_alive_as_another(fleet: Fleet) -> No
 
 def test_a_shores_puts_reach_nobody(fleet: Fleet) -> None:
     until(fleet, lambda s: all(s.alive(v) is True for v in BOATS), "both boats' tokens")
-    fleet.observer.put(pose_key("boat1"), pose_bytes(888.0, 3.0))
-    fleet.observer.put("seamap/boat1/survey/s1/forged", b"forged")
+    fleet.observer.put(pose_key("boat1"), pose_bytes(888.0, 3.0), congestion_control=BLOCK)
+    fleet.observer.put("seamap/boat1/survey/s1/forged", b"forged", congestion_control=BLOCK)
     own = pose_bytes(889.0, 4.0)
-    fleet.boats["boat1"].session.put(pose_key("boat1"), own)
+    fleet.boats["boat1"].session.put(pose_key("boat1"), own, congestion_control=BLOCK)
     until(fleet, lambda s: any(p.time == 889.0 for p in s.track("boat1")), "boat1's pose")
     time.sleep(QUIET_S)
     fleet.station.run(0.2)
@@ -346,11 +380,11 @@ def test_another_users_password_without_its_certificate_is_allowed_nothing(
     config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     session = zenoh.open(config)
     try:
-        session.put(pose_key("boat2"), pose_bytes(999.0, 5.0))
+        session.put(pose_key("boat2"), pose_bytes(999.0, 5.0), congestion_control=BLOCK)
         replies = list(session.get(control_key("boat1"), payload=b'{"action": "stop"}'))
         assert [r for r in replies if r.ok is not None] == []
         own = pose_bytes(998.0, 6.0)
-        fleet.boats["boat2"].session.put(pose_key("boat2"), own)
+        fleet.boats["boat2"].session.put(pose_key("boat2"), own, congestion_control=BLOCK)
         observed(fleet, own)
         time.sleep(QUIET_S)
         assert pose_bytes(999.0, 5.0) not in fleet.observed.payloads()
