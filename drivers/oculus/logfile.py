@@ -205,13 +205,52 @@ def _detect_version(path: Path) -> int:
     # A file cut inside the 4-byte magic (even an empty one) is a truncated v1 log.
     if start[:4] == _FILE_MAGIC_BYTES or (len(start) < 4 and _FILE_MAGIC_BYTES.startswith(start)):
         return 1
-    if is_raw_capture_start(start):
+    if is_raw_capture_start(start) or _frames_a_message(path):
         return RAW_CAPTURE
     raise OculusFormatError(
         f"{path}: not an Oculus log or capture (starts with {start[:8].hex(' ')}, expected "
         "44 33 22 11 (.oculus v1), 'SQLite format 3' (.oculus v2) or an Oculus message "
         "header 53 4F (a raw capture))"
     )
+
+
+CAPTURE_SCAN = 4 << 20
+"""Bytes of a file searched for a whole Oculus message when it does not start with one (a
+capture begun mid-message: a ping is up to a few hundred kB)."""
+
+
+def _frames_a_message(path: Path) -> bool:
+    """Whether the framer finds a whole, recognised Oculus message (a plausible header
+    and, for a ping, a fixed part whose sizes agree) in the file's first CAPTURE_SCAN
+    bytes: the capture of a stream joined mid-message."""
+    framer = OculusFramer()
+    try:
+        with open(path, "rb") as f:
+            remaining = CAPTURE_SCAN
+            while remaining > 0:
+                chunk = f.read(min(_SCAN_CHUNK, remaining))
+                messages = framer.feed(chunk) if chunk else framer.flush()
+                if framer.messages_out > framer.messages_unrecognised:
+                    return True
+                if not chunk:
+                    return False
+                remaining -= len(chunk)
+    except OSError:
+        return False
+    return bool(messages) and framer.messages_out > framer.messages_unrecognised
+
+
+def is_raw_capture(path: PathLike) -> bool:
+    """Whether a file is a raw network capture (module doc): it starts with a plausible
+    Oculus message header, or holds a whole recognised message within its first
+    ``CAPTURE_SCAN`` bytes (a capture joined mid-message)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEADER_SIZE)
+    except OSError:
+        return False
+    return is_raw_capture_start(head) or _frames_a_message(path)
 
 
 def is_raw_capture_start(head: bytes) -> bool:

@@ -34,7 +34,7 @@ def detect_log_kind(path: Path) -> str:
         raise SeamapError(f"{path}: cannot read ({exc.strerror})") from None
     if head.startswith(b"\x44\x33\x22\x11") or head.startswith(b"SQLite format 3\x00"):
         return "oculus"
-    from drivers.oculus.logfile import is_raw_capture_start
+    from drivers.oculus.logfile import is_raw_capture, is_raw_capture_start
 
     if is_raw_capture_start(head):
         return "oculus"  # a raw network capture: Oculus messages, no log framing
@@ -42,6 +42,8 @@ def detect_log_kind(path: Path) -> str:
         return "mavlink"
     if not head:
         raise SeamapError(f"{path}: empty file, not a log")
+    if is_raw_capture(path):
+        return "oculus"  # a capture joined mid-message: whole messages further on
     raise SeamapError(
         f"{path}: not an Oculus log or capture, nor a MAVLink log (unrecognised first bytes "
         f"{head[:8].hex(' ')})"

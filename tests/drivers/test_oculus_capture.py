@@ -269,3 +269,19 @@ def test_mutated_captures_never_crash_the_reader(
     assert report.pings == len(pings) <= report.items
     for ping in pings:
         assert math.isfinite(ping.time) and ping.image.shape == (8, 16)
+
+
+def test_a_capture_joined_mid_message_is_still_a_capture(tmp_path: Path) -> None:
+    """A stream recorded from the middle of a ping: the tail of that ping, then whole
+    messages. The file is told a capture by the first whole message in it."""
+    real = real_pings()
+    path = tmp_path / "joined.raw"
+    path.write_bytes(real[1000:])
+    report = LogReadReport()
+    assert [p.ping_id for p in iter_pings(path, report)] == [415324, 415325]
+    assert report.version == RAW_CAPTURE and report.bytes_skipped == REAL_PING_SIZE - 1000
+    done = seamap("info", path, "--json")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["format"] == "oculus-raw" and summary["count"] == 2
+    assert summary["bytes_skipped"] == REAL_PING_SIZE - 1000
