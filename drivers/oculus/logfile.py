@@ -229,7 +229,10 @@ def _frames_a_message(path: Path) -> bool:
             remaining = CAPTURE_SCAN
             while remaining > 0:
                 chunk = f.read(min(_SCAN_CHUNK, remaining))
-                messages = framer.feed(chunk) if chunk else framer.flush()
+                if chunk:
+                    framer.feed(chunk)
+                else:
+                    framer.flush()
                 if framer.messages_out > framer.messages_unrecognised:
                     return True
                 if not chunk:
@@ -237,7 +240,7 @@ def _frames_a_message(path: Path) -> bool:
                 remaining -= len(chunk)
     except OSError:
         return False
-    return bool(messages) and framer.messages_out > framer.messages_unrecognised
+    return False
 
 
 def is_raw_capture(path: PathLike) -> bool:
