@@ -28,6 +28,8 @@ from drivers.formats.results import TRAJECTORY_COLUMNS, trajectory_table, write_
 from mapping.geo import LocalFrame
 
 SURVEY_GPKG = "survey.gpkg"
+AREA_DESCRIPTION = "The survey's area, one row a polygon (holes are not to be surveyed)"
+GAPS_DESCRIPTION = "What the survey missed of its area (gaps.geojson): id 1 the largest, area_m2"
 
 COVERAGE_FIELDS: dict[str, type] = {
     "cell_m": float,
@@ -90,9 +92,9 @@ def write_survey_gpkg(
     table = trajectory_table(frame, times, poses)
     layers = [_track(table), _poses(table)]
     if area is not None:
-        layers.append(_area(area, frame))
+        layers.append(_polygons("area", AREA_DESCRIPTION, "part", area, frame))
     if gaps is not None:
-        layers.append(_gaps(gaps, frame))
+        layers.append(_polygons("gaps", GAPS_DESCRIPTION, "id", gaps, frame))
     layers.append(_coverage(coverage))
     # GDAL's GPKG driver wants the .gpkg extension, hence the temporary name's order.
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
@@ -169,31 +171,20 @@ def _utm(polygon: shapely.Polygon, frame: LocalFrame) -> shapely.Polygon:
     return shapely.transform(polygon, lambda xy: xy + np.array([frame.anchor_e, frame.anchor_n]))
 
 
-def _area(area: Sequence[shapely.Polygon], frame: LocalFrame) -> _Layer:
-    polygons = [orient(_utm(polygon, frame), 1.0) for polygon in area]
+def _polygons(
+    name: str, description: str, key: str, polygons: Sequence[shapely.Polygon], frame: LocalFrame
+) -> _Layer:
+    """A polygon layer in the frame's UTM CRS, numbered from 1 in ``key``, with each
+    polygon's area (m2)."""
+    utm = [orient(_utm(polygon, frame), 1.0) for polygon in polygons]
     return _Layer(
-        "area",
-        "The survey's area, one row a polygon (holes are not to be surveyed)",
+        name,
+        description,
         "Polygon",
-        _wkb(polygons),
+        _wkb(utm),
         {
-            "part": np.arange(1, len(polygons) + 1, dtype=np.int64),
-            "area_m2": np.array([round(p.area, 3) for p in polygons], float),
-        },
-        {},
-    )
-
-
-def _gaps(gaps: Sequence[shapely.Polygon], frame: LocalFrame) -> _Layer:
-    polygons = [orient(_utm(gap, frame), 1.0) for gap in gaps]
-    return _Layer(
-        "gaps",
-        "What the survey missed of its area (gaps.geojson): id 1 the largest, area_m2",
-        "Polygon",
-        _wkb(polygons),
-        {
-            "id": np.arange(1, len(polygons) + 1, dtype=np.int64),
-            "area_m2": np.array([round(float(gap.area), 3) for gap in gaps], float),
+            key: np.arange(1, len(utm) + 1, dtype=np.int64),
+            "area_m2": np.array([round(float(p.area), 3) for p in utm], float),
         },
         {},
     )
