@@ -184,7 +184,8 @@ def _polygons(
         _wkb(utm),
         {
             key: np.arange(1, len(utm) + 1, dtype=np.int64),
-            "area_m2": np.array([round(float(p.area), 3) for p in utm], float),
+            # Measured in local metres: UTM's seven-digit northings cost the area digits.
+            "area_m2": np.array([round(float(p.area), 3) for p in polygons], float),
         },
         {},
     )
